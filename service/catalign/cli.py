@@ -1,12 +1,167 @@
-"""Command-line front door: ``catalign evaluate|...``."""
+"""Command-line front door: ``catalign evaluate`` (and the commands later issues add).
+
+Errors that catalign raises on purpose are shown as one sentence with exit code 2; anything else
+is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
+import json
+import logging
+from pathlib import Path
+from typing import Annotated
+
 import typer
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__)
+from catalign.errors import CatalignError
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 
 
 @app.callback()
-def main() -> None:
+def main(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log at INFO level.")] = False,
+) -> None:
     """catalign: align partial point clouds of chairs to a CAD library."""
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+
+
+def fail(error: CatalignError) -> typer.Exit:
+    typer.echo(f"error: {error}", err=True)
+    return typer.Exit(code=2)
+
+
+@app.command()
+def evaluate(
+    method: Annotated[str, typer.Option(help="Registration method: fpfh.")] = "fpfh",
+    setting: Annotated[
+        list[str] | None, typer.Option(help="same and/or cross (repeat the option); both if unset.")
+    ] = None,
+    views: Annotated[int, typer.Option(min=1, help="Views per validation shape.")] = 2,
+    max_shapes: Annotated[
+        int | None,
+        typer.Option(min=1, help="Cap on observed shapes and on each library (quick runs)."),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the test cases and of RANSAC.")] = 0,
+    pose_mode: Annotated[str, typer.Option(help="upright (yaw only) or so3.")] = "upright",
+    chairs_dir: Annotated[
+        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
+) -> None:
+    """Run a registration method on the validation split and print the paper's table."""
+    from catalign.data.shapes import SharedChairs
+    from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
+    from catalign.registration.methods import build_registrar
+
+    settings = tuple(setting or ("same", "cross"))
+    try:
+        build_registrar(method)  # an unknown name fails before any data is read
+        for name in settings:
+            if name not in ("same", "cross"):
+                raise _bad_option(f"unknown setting {name!r}; use same or cross")
+        if pose_mode not in ("upright", "so3"):
+            raise _bad_option(f"unknown pose mode {pose_mode!r}; use upright or so3")
+        config = EvaluationConfig(
+            method=method,
+            settings=settings,  # type: ignore[arg-type]
+            views=views,
+            max_shapes=max_shapes,
+            seed=seed,
+            pose_mode=pose_mode,  # type: ignore[arg-type]
+        )
+        report = evaluate(config, SharedChairs(chairs_dir))
+    except CatalignError as error:
+        raise fail(error) from None
+    path = out or Path("results") / f"evaluate-{method}-{pose_mode}.json"
+    write_report(report, path)
+    typer.echo(report["table"])
+    typer.echo(f"\nreport written to {path}")
+
+
+def _bad_option(message: str) -> CatalignError:
+    from catalign.errors import ConfigError
+
+    return ConfigError(message)
+
+
+@app.command()
+def neighbours(
+    k: Annotated[int, typer.Option(min=1, help="Neighbours per shape.")] = 3,
+    chairs_dir: Annotated[
+        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+) -> None:
+    """Print each shared chair's nearest training chairs by EMD in NCC (cached on disk)."""
+    from catalign.data.neighbours import shape_neighbours
+    from catalign.data.shapes import SharedChairs
+
+    try:
+        chairs = SharedChairs(chairs_dir)
+        shapes = {i: chairs.load(i).points for i in chairs.ids()}
+    except CatalignError as error:
+        raise fail(error) from None
+    result = shape_neighbours(shapes, chairs.ids("train"), k=k)
+    for shape_id, near in result.items():
+        typer.echo(f"{shape_id}: " + ", ".join(f"{n} ({d:.4f})" for n, d in near))
+
+
+@app.command()
+def train(
+    out: Annotated[Path, typer.Option(help="Run folder: state, CSV log, final weights.")] = Path(
+        "runs/default"
+    ),
+    model: Annotated[str, typer.Option(help="ResUNetBN2C or ResUNetSmall.")] = "ResUNetBN2C",
+    curriculum: Annotated[
+        str, typer.Option(help="ncc (the paper's) or same-only (the FCGF ablation).")
+    ] = "ncc",
+    loss: Annotated[str, typer.Option(help="hardest (FCGF) or contrastive (random negatives).")] = (
+        "hardest"
+    ),
+    stage1_steps: Annotated[int, typer.Option(min=0, help="Same-instance steps.")] = 600,
+    stage2_steps: Annotated[int, typer.Option(min=0, help="Curriculum stage-2 steps.")] = 900,
+    batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = 2,
+    voxel_size: Annotated[float, typer.Option(help="Voxel size in metres.")] = 0.025,
+    procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
+    learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
+    seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = 0,
+    validate_every: Annotated[int, typer.Option(min=1, help="Steps between validations.")] = 100,
+    chairs_dir: Annotated[
+        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+) -> None:
+    """Train the feature extractor; an interrupted run continues from its last checkpoint."""
+    from pydantic import ValidationError
+
+    from catalign.data.shapes import SharedChairs
+    from catalign.training.config import TrainConfig
+    from catalign.training.loop import train as run_training
+
+    try:
+        config = TrainConfig(
+            out=out,
+            model=model,
+            curriculum=curriculum,
+            loss=loss,
+            stage1_steps=stage1_steps,
+            stage2_steps=stage2_steps,
+            batch_size=batch_size,
+            voxel_size=voxel_size,
+            procedural=procedural,
+            learning_rate=learning_rate,
+            seed=seed,
+            validate_every=validate_every,
+        )
+    except ValidationError as error:
+        first = error.errors()[0]
+        typer.echo(f"error: --{first['loc'][0]}: {first['msg']}", err=True)
+        raise typer.Exit(code=2) from None
+    try:
+        card = run_training(config, SharedChairs(chairs_dir))
+    except CatalignError as error:
+        raise fail(error) from None
+    typer.echo(json.dumps(card["validation"], indent=2))
+    typer.echo(f"model written to {out}")

@@ -1,1 +1,1 @@
-"""data stage."""
+"""Data for training and evaluation: shape sources, partial views and shape neighbours."""

@@ -1,1 +1,1 @@
-"""evaluation stage."""
+"""Evaluation: the paper's test protocol, its metrics, and the report."""

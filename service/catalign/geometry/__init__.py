@@ -1,1 +1,1 @@
-"""geometry stage."""
+"""Geometry primitives shared by every stage: file I/O, surface sampling, voxels, SE(3), NCC."""

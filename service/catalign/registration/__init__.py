@@ -1,1 +1,1 @@
-"""registration stage."""
+"""Registration: from an observed cloud to the best library model and its pose."""

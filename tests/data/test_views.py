@@ -1,0 +1,229 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from catalign.data.shapes import Shape
+from catalign.data.views import (
+    MODEL_TO_WORLD_UP,
+    Camera,
+    DepthNoise,
+    add_depth_noise,
+    camera_at,
+    fixed_viewpoints,
+    random_camera,
+    random_object_pose,
+    render_mesh_view,
+    render_view,
+    visible_point_view,
+)
+from catalign.geometry.se3 import make_pose, transform
+
+RADIUS = 0.3
+CENTRE = np.array([0.2, -0.1, 0.5])
+
+
+def unit_rows(vectors: np.ndarray) -> np.ndarray:
+    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+
+@pytest.fixture
+def sphere_shape(shape_from_trimesh) -> Shape:
+    return shape_from_trimesh(trimesh.creation.icosphere(subdivisions=3, radius=RADIUS), "sphere")
+
+
+@pytest.fixture
+def camera() -> Camera:
+    return camera_at(CENTRE, 1.5, 25.0, 40.0)
+
+
+def test_mesh_view_sees_only_camera_facing_surface(sphere_shape: Shape, camera: Camera, rng):
+    pose = make_pose(np.eye(3), CENTRE)
+    seen = render_view(sphere_shape, pose, camera, rng, noisy=False)
+    assert len(seen) > 1000
+    # the hits lie on the (faceted) sphere
+    distance = np.linalg.norm(seen - CENTRE, axis=1)
+    assert distance.max() <= RADIUS + 1e-5
+    assert distance.min() >= 0.98 * RADIUS
+    rays = unit_rows(seen - camera.eye)
+    # the true surface normal of each hit's triangle faces against the viewing ray
+    posed = trimesh.Trimesh(
+        transform(sphere_shape.mesh.vertices, pose), sphere_shape.mesh.faces, process=False
+    )
+    _, _, triangles = trimesh.proximity.closest_point(posed, seen)
+    facet_dots = np.einsum("ij,ij->i", posed.face_normals[triangles], rays)
+    assert (facet_dots < 0).all()
+    # and so does the radial direction, up to faceting at the silhouette
+    radial_dots = np.einsum("ij,ij->i", unit_rows(seen - CENTRE), rays)
+    assert (radial_dots < 0).mean() > 0.99
+    assert radial_dots.max() < 0.1
+
+
+def test_mesh_view_hides_occluded_geometry():
+    eye, target = np.array([0.0, -3.0, 0.5]), np.array([0.0, 0.0, 0.5])
+    camera = Camera(eye=eye, target=target)
+    front = trimesh.creation.box(extents=(1.0, 0.1, 1.0))
+    front.apply_translation([0.0, -1.0, 0.5])
+    hidden = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    hidden.apply_translation([0.0, 1.0, 0.5])
+    both = trimesh.util.concatenate([front, hidden])
+    seen = render_mesh_view(np.asarray(both.vertices), np.asarray(both.faces), camera)
+    assert len(seen) > 100
+    # every hit is on the front face of the occluder (y = -1.05); nothing of the hidden box
+    np.testing.assert_allclose(seen[:, 1], -1.05, atol=1e-4)
+    alone = render_mesh_view(np.asarray(hidden.vertices), np.asarray(hidden.faces), camera)
+    assert len(alone) > 100 and (alone[:, 1] > 0.8).all()
+
+
+def test_point_view_keeps_the_camera_facing_hemisphere(camera: Camera, rng):
+    directions = unit_rows(rng.normal(size=(6000, 3)))
+    points = CENTRE + RADIUS * directions
+    seen = visible_point_view(points, camera)
+    assert 0.25 * len(points) < len(seen) < 0.55 * len(points)
+    # a subset of the input
+    assert len({p.tobytes() for p in seen} - {p.tobytes() for p in points}) == 0
+    towards_camera = (camera.eye - CENTRE) / np.linalg.norm(camera.eye - CENTRE)
+    facing = (seen - CENTRE) @ towards_camera > 0
+    assert facing.mean() > 0.97  # a few points at the rim may slip through
+    # the hemisphere away from the camera is (almost) entirely dropped
+    back = points[(points - CENTRE) @ towards_camera < -0.2 * RADIUS]
+    kept = {p.tobytes() for p in seen}
+    assert sum(p.tobytes() in kept for p in back) <= 0.01 * len(back)
+
+
+def test_render_view_uses_point_view_for_point_shapes(camera: Camera, rng):
+    directions = unit_rows(rng.normal(size=(3000, 3)))
+    shape = Shape("ball", RADIUS * directions)
+    pose = make_pose(np.eye(3), CENTRE)
+    seen = render_view(shape, pose, camera, rng, noisy=False)
+    np.testing.assert_array_equal(seen, visible_point_view(transform(shape.points, pose), camera))
+
+
+def _plane_at_depth(depth: float, count: int, half_width: float, rng) -> np.ndarray:
+    """Points on the plane x = depth in front of a camera at the origin looking along +x."""
+    yz = rng.uniform(-half_width, half_width, size=(count, 2)) * depth
+    return np.c_[np.full(count, depth), yz]
+
+
+def _ray_residuals(depth: float, rng, half_width: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    camera = Camera(eye=np.zeros(3), target=np.array([1.0, 0.0, 0.0]))
+    points = _plane_at_depth(depth, 40_000, half_width, rng)
+    noisy = add_depth_noise(points, camera, rng)
+    rays = unit_rows(points - camera.eye)
+    along = np.einsum("ij,ij->i", noisy - points, rays)
+    across = noisy - points - along[:, None] * rays
+    return along, across
+
+
+def test_depth_noise_statistics(rng):
+    noise = DepthNoise()
+    # the documented magnitudes: about 2 mm at 1 m and 6.5 mm at 2 m
+    assert float(noise.sigma(np.array(1.0))) == pytest.approx(0.002)
+    assert float(noise.sigma(np.array(2.0))) == pytest.approx(0.0065)
+    stds = {}
+    for depth in (1.0, 2.0):
+        along, across = _ray_residuals(depth, rng)
+        # the perturbation stays on the camera ray
+        assert np.abs(across).max() < 1e-9
+        assert abs(along.mean()) < 0.05 * noise.sigma(depth)
+        assert along.std() == pytest.approx(noise.sigma(depth), rel=0.1)
+        stds[depth] = along.std()
+    # sigma grows with the square of the depth
+    expected = noise.sigma(2.0) / noise.sigma(1.0)
+    assert stds[2.0] / stds[1.0] == pytest.approx(expected, rel=0.1)
+    assert expected > 3.0
+
+
+def test_depth_noise_is_sigma_along_the_optical_axis(rng):
+    """Off-axis points: the depth (optical-axis) component has std sigma(z) exactly."""
+    camera = Camera(eye=np.zeros(3), target=np.array([1.0, 0.0, 0.0]))
+    points = _plane_at_depth(1.5, 40_000, 0.5, rng)  # a wide plane, up to 27 degrees off-axis
+    noisy = add_depth_noise(points, camera, rng)
+    assert (noisy[:, 0] - points[:, 0]).std() == pytest.approx(DepthNoise().sigma(1.5), rel=0.05)
+
+
+def test_depth_noise_custom_model(rng):
+    camera = Camera(eye=np.zeros(3), target=np.array([0.0, 0.0, -1.0]))
+    points = np.c_[np.zeros((20_000, 2)), np.full(20_000, -1.0)]
+    noisy = add_depth_noise(points, camera, rng, DepthNoise(base=0.01, quadratic=0.0))
+    assert (noisy[:, 2] - points[:, 2]).std() == pytest.approx(0.01, rel=0.05)
+    silent = add_depth_noise(points, camera, rng, DepthNoise(base=0.0, quadratic=0.0))
+    np.testing.assert_allclose(silent, points)
+
+
+def test_upright_pose_maps_model_up_to_world_up():
+    np.testing.assert_allclose(MODEL_TO_WORLD_UP @ [0, 1, 0], [0, 0, 1], atol=1e-15)
+    rng = np.random.default_rng(0)
+    yaws = []
+    for _ in range(50):
+        pose = random_object_pose(rng, "upright", position_range=0.5, height=0.4)
+        rotation = pose[:3, :3]
+        np.testing.assert_allclose(rotation @ [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], atol=1e-12)
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0)
+        assert pose[2, 3] == 0.4
+        assert np.abs(pose[:2, 3]).max() <= 0.5
+        np.testing.assert_array_equal(pose[3], [0, 0, 0, 1])
+        forward = rotation @ [0.0, 0.0, 1.0]  # the backrest direction stays horizontal
+        assert abs(forward[2]) < 1e-12
+        yaws.append(np.arctan2(forward[1], forward[0]))
+    assert np.ptp(yaws) > np.pi  # the yaw varies
+
+
+def test_so3_pose_is_a_valid_rotation():
+    rng = np.random.default_rng(1)
+    ups = []
+    for _ in range(50):
+        pose = random_object_pose(rng, "so3")
+        rotation = pose[:3, :3]
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rotation) == pytest.approx(1.0)
+        ups.append(rotation @ [0.0, 1.0, 0.0])
+    # not upright: model +Y goes anywhere
+    assert np.min(np.array(ups)[:, 2]) < 0.0
+
+
+def test_unknown_pose_mode():
+    with pytest.raises(ValueError, match="unknown pose mode"):
+        random_object_pose(np.random.default_rng(0), "sideways")  # type: ignore[arg-type]
+
+
+def test_fixed_viewpoints():
+    target = np.array([0.5, -0.2, 0.45])
+    cameras = fixed_viewpoints(target, distance=2.5)
+    assert len(cameras) == 10
+    eyes = np.array([c.eye for c in cameras])
+    np.testing.assert_allclose(np.linalg.norm(eyes - target, axis=1), 2.5)
+    pairwise = np.linalg.norm(eyes[:, None] - eyes[None], axis=2)
+    assert pairwise[~np.eye(10, dtype=bool)].min() > 0.1
+    for i, cam in enumerate(cameras):
+        np.testing.assert_array_equal(cam.target, target)
+        elevation = np.degrees(np.arcsin((cam.eye[2] - target[2]) / 2.5))
+        assert elevation == pytest.approx(15.0 if i % 2 == 0 else 35.0)
+        azimuth = np.degrees(np.arctan2(cam.eye[1] - target[1], cam.eye[0] - target[0])) % 360
+        assert azimuth == pytest.approx(36.0 * i, abs=1e-9)
+
+
+def test_random_camera_ranges():
+    rng = np.random.default_rng(3)
+    target = np.array([1.0, 1.0, 0.4])
+    for _ in range(50):
+        cam = random_camera(target, rng)
+        offset = cam.eye - target
+        distance = np.linalg.norm(offset)
+        assert 1.2 <= distance <= 3.0
+        assert 5.0 <= np.degrees(np.arcsin(offset[2] / distance)) <= 50.0
+
+
+def test_render_view_is_deterministic(sphere_shape: Shape, camera: Camera):
+    pose = make_pose(np.eye(3), CENTRE)
+    a = render_view(sphere_shape, pose, camera, np.random.default_rng(42))
+    b = render_view(sphere_shape, pose, camera, np.random.default_rng(42))
+    c = render_view(sphere_shape, pose, camera, np.random.default_rng(43))
+    np.testing.assert_array_equal(a, b)
+    assert a.shape == c.shape  # the same pixels hit ...
+    assert not np.array_equal(a, c)  # ... with different noise
+    clean = render_view(sphere_shape, pose, camera, np.random.default_rng(0), noisy=False)
+    # noise of a few millimetres at 1.5 m
+    assert 0.001 < np.linalg.norm(a - clean, axis=1).mean() < 0.01
