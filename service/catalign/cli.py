@@ -36,7 +36,10 @@ def fail(error: CatalignError) -> typer.Exit:
 
 @app.command()
 def evaluate(
-    method: Annotated[str, typer.Option(help="Registration method: fpfh.")] = "fpfh",
+    method: Annotated[str, typer.Option(help="Registration method: fpfh or learned.")] = "fpfh",
+    model_dir: Annotated[
+        Path | None, typer.Option(help="Weights of the learned method (default: model_store/).")
+    ] = None,
     setting: Annotated[
         list[str] | None, typer.Option(help="same and/or cross (repeat the option); both if unset.")
     ] = None,
@@ -55,11 +58,11 @@ def evaluate(
     """Run a registration method on the validation split and print the paper's table."""
     from catalign.data.shapes import SharedChairs
     from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
-    from catalign.registration.methods import build_registrar
+    from catalign.registration.methods import check_method
 
     settings = tuple(setting or ("same", "cross"))
     try:
-        build_registrar(method)  # an unknown name fails before any data is read
+        check_method(method)  # an unknown name fails before any data is read
         for name in settings:
             if name not in ("same", "cross"):
                 raise _bad_option(f"unknown setting {name!r}; use same or cross")
@@ -72,6 +75,7 @@ def evaluate(
             max_shapes=max_shapes,
             seed=seed,
             pose_mode=pose_mode,  # type: ignore[arg-type]
+            model_dir=model_dir,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
     except CatalignError as error:

@@ -14,8 +14,9 @@ from catalign.geometry.se3 import (
     transform,
     translation_error,
 )
+from catalign.registration.alignment import mutual_matches
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
-from catalign.registration.fpfh import FPFHRegistrar, mutual_matches
+from catalign.registration.fpfh import FPFHRegistrar
 from catalign.registration.methods import METHODS, build_registrar
 
 RRE_MAX_DEG = 5.0

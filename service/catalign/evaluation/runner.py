@@ -33,6 +33,7 @@ class EvaluationConfig:
     max_shapes: int | None = None
     seed: int = 0
     pose_mode: PoseMode = "upright"
+    model_dir: Path | None = None
 
 
 def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
@@ -41,7 +42,7 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
     (the first ids in sorted order), for quick runs.
     """
-    registrar = build_registrar(config.method)
+    registrar = build_registrar(config.method, config.model_dir)
     val_ids = _first(chairs.ids("val"), config.max_shapes)
     train_ids = _first(chairs.ids("train"), config.max_shapes)
     observed = metric_shapes(chairs, val_ids)
@@ -55,7 +56,8 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
         summaries.append(summarise(outcomes, frames_of(observed | library), setting))
     rows = [s["row"] for s in summaries]
     return {
-        "config": config.__dict__ | {"settings": list(config.settings)},
+        "config": config.__dict__
+        | {"settings": list(config.settings), "model_dir": str(config.model_dir or "")},
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": platform.machine(),
         "split": {"val": len(val_ids), "train": len(train_ids)},

@@ -1,0 +1,74 @@
+"""Shared by every registration method: feature matching, RANSAC with ICP, and the score.
+
+The query is aligned *onto* the model (query -> model) so that Open3D's fitness is the share of
+query points explained by the posed model; for a partial view against a complete model that is
+the fair measure. Callers invert the transform to report the model -> observation pose.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+reg = o3d.pipelines.registration
+
+
+def mutual_matches(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -> np.ndarray:
+    """Index pairs (i, j) of feature nearest neighbours, mutual when there are enough of them."""
+    forward = cKDTree(model).query(query, workers=-1)[1]
+    backward = cKDTree(query).query(model, workers=-1)[1]
+    mutual = np.flatnonzero(backward[forward] == np.arange(len(query)))
+    if len(mutual) >= min_mutual:
+        return np.stack([mutual, forward[mutual]], axis=1)
+    return np.stack([np.arange(len(query)), forward], axis=1)
+
+
+def point_cloud(points: np.ndarray, normal_radius: float | None = None) -> o3d.geometry.PointCloud:
+    """An Open3D cloud, with normals estimated within ``normal_radius`` when given."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    if normal_radius is not None:
+        cloud.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30)
+        )
+    return cloud
+
+
+def ransac_icp(
+    query: o3d.geometry.PointCloud,
+    model: o3d.geometry.PointCloud,
+    matches: np.ndarray,
+    ransac_distance: float,
+    icp_distance: float,
+    seed: int,
+    iterations: int = 100_000,
+    confidence: float = 0.999,
+) -> reg.RegistrationResult:
+    """RANSAC on putative matches, then point-to-plane ICP (the model needs normals)."""
+    o3d.utility.random.seed(seed)
+    coarse = reg.registration_ransac_based_on_correspondence(
+        query,
+        model,
+        o3d.utility.Vector2iVector(matches.astype(np.int32)),
+        ransac_distance,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(ransac_distance),
+        ],
+        reg.RANSACConvergenceCriteria(iterations, confidence),
+    )
+    return reg.registration_icp(
+        query,
+        model,
+        icp_distance,
+        coarse.transformation,
+        reg.TransformationEstimationPointToPlane(),
+    )
+
+
+def alignment_score(result: reg.RegistrationResult, inlier_distance: float) -> float:
+    """Query inlier fraction, discounted by up to half for the inlier RMSE."""
+    rmse = float(result.inlier_rmse) / inlier_distance
+    return float(result.fitness) * (1.0 - 0.5 * min(rmse, 1.0))
