@@ -42,9 +42,7 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.floor(points / voxel_size).astype(np.int64)
 
 
-def voxel_grid(
-    points: np.ndarray, voxel_size: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def voxel_grid(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Occupied voxels of a cloud: ``(keys (M,3) int64 sorted, centroids (M,3), inverse (N,))``.
 
     ``inverse[i]`` is the voxel of point ``i``; a centroid is the mean of its voxel's points.
