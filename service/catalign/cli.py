@@ -53,6 +53,13 @@ def evaluate(
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
+    up_prior: Annotated[
+        bool | None,
+        typer.Option(
+            "--up-prior/--no-up-prior",
+            help="Tell the method that world +Z is up (default: on for upright, off for so3).",
+        ),
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
@@ -76,11 +83,13 @@ def evaluate(
             seed=seed,
             pose_mode=pose_mode,  # type: ignore[arg-type]
             model_dir=model_dir,
+            up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
     except CatalignError as error:
         raise fail(error) from None
-    path = out or Path("results") / f"evaluate-{method}-{pose_mode}.json"
+    prior = "" if config.up_prior else "-no-up"
+    path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}.json"
     write_report(report, path)
     typer.echo(report["table"])
     typer.echo(f"\nreport written to {path}")
@@ -129,10 +138,16 @@ def train(
     stage2_steps: Annotated[int, typer.Option(min=0, help="Curriculum stage-2 steps.")] = 900,
     batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = 2,
     voxel_size: Annotated[float, typer.Option(help="Voxel size in metres.")] = 0.025,
+    rotation: Annotated[
+        str, typer.Option(help="Augmentation: upright (yaw, small tilt) or so3 (any rotation).")
+    ] = "upright",
     procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
     learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = 0,
     validate_every: Annotated[int, typer.Option(min=1, help="Steps between validations.")] = 100,
+    init_from: Annotated[
+        Path | None, typer.Option(help="Start from another run's weights (a shared stage 1).")
+    ] = None,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -143,6 +158,7 @@ def train(
     from catalign.data.shapes import SharedChairs
     from catalign.training.config import TrainConfig
     from catalign.training.loop import train as run_training
+    from catalign.training.loop import training_shapes
 
     try:
         config = TrainConfig(
@@ -155,16 +171,19 @@ def train(
             batch_size=batch_size,
             voxel_size=voxel_size,
             procedural=procedural,
+            rotation=rotation,
             learning_rate=learning_rate,
             seed=seed,
             validate_every=validate_every,
+            init_from=init_from,
         )
     except ValidationError as error:
         first = error.errors()[0]
         typer.echo(f"error: --{first['loc'][0]}: {first['msg']}", err=True)
         raise typer.Exit(code=2) from None
     try:
-        card = run_training(config, SharedChairs(chairs_dir))
+        shapes, val_ids = training_shapes(config, SharedChairs(chairs_dir))
+        card = run_training(config, shapes, val_ids)
     except CatalignError as error:
         raise fail(error) from None
     typer.echo(json.dumps(card["validation"], indent=2))

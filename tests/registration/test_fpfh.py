@@ -6,6 +6,7 @@ from scipy.spatial import cKDTree
 
 from catalign.data.shapes import Shape, SharedChairs, to_metric
 from catalign.errors import CatalignError, ConfigError
+from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.se3 import (
     axis_angle,
     make_pose,
@@ -16,7 +17,6 @@ from catalign.geometry.se3 import (
 )
 from catalign.registration.alignment import mutual_matches
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
-from catalign.registration.fpfh import FPFHRegistrar
 from catalign.registration.methods import METHODS, build_registrar
 
 RRE_MAX_DEG = 5.0
@@ -24,7 +24,7 @@ RTE_MAX_M = 0.03
 
 
 def register_known_pose(points: np.ndarray, pose: np.ndarray) -> RegistrationResult:
-    registrar = FPFHRegistrar()
+    registrar = build_registrar("fpfh")
     registrar.prepare([LibraryShape("chair", points)])
     return registrar.register(transform(points, pose), seed=0)
 
@@ -77,7 +77,7 @@ def test_picks_the_right_library_model(box_chair: Shape):
     rng = np.random.default_rng(5)
     ball = rng.normal(size=(8000, 3))
     ball = 0.4 * ball / np.linalg.norm(ball, axis=1, keepdims=True)
-    registrar = FPFHRegistrar()
+    registrar = build_registrar("fpfh")
     registrar.prepare([LibraryShape("ball", ball), LibraryShape("chair", box_chair.points)])
     pose = make_pose(axis_angle(np.array([0.0, 0.0, 1.0]), 0.7), np.array([0.3, 0.2, 0.1]))
     result = registrar.register(transform(box_chair.points, pose), seed=0)
@@ -88,7 +88,7 @@ def test_picks_the_right_library_model(box_chair: Shape):
 
 def test_register_needs_prepare():
     with pytest.raises(RuntimeError, match="prepare"):
-        FPFHRegistrar().register(np.zeros((10, 3)))
+        build_registrar("fpfh").register(np.zeros((10, 3)))
 
 
 def test_mutual_matches():
@@ -104,12 +104,13 @@ def test_mutual_matches():
 
 def test_build_registrar():
     registrar = build_registrar("fpfh")
-    assert isinstance(registrar, FPFHRegistrar) and isinstance(registrar, Registrar)
+    assert isinstance(registrar, Registrar)
+    assert isinstance(registrar.extractor, FPFHExtractor)
     assert registrar.name == "fpfh"
     assert "fpfh" in METHODS
 
 
 def test_build_registrar_unknown_name():
-    with pytest.raises(ConfigError, match="unknown method 'nope'; known methods: fpfh"):
+    with pytest.raises(ConfigError, match="unknown method 'nope'; known methods: fpfh, learned"):
         build_registrar("nope")
     assert issubclass(ConfigError, CatalignError)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from catalign.data.shapes import SharedChairs
-from catalign.data.views import PoseMode
+from catalign.data.views import WORLD_UP, PoseMode
 from catalign.evaluation.protocol import (
     Setting,
     build_cases,
@@ -34,15 +34,18 @@ class EvaluationConfig:
     seed: int = 0
     pose_mode: PoseMode = "upright"
     model_dir: Path | None = None
+    up_prior: bool = True
 
 
 def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     """Run ``config.method`` on every setting; return the table rows and per-case details.
 
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
-    (the first ids in sorted order), for quick runs.
+    (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
+    +Z is up (true of upright observations; in ``so3`` mode it is a wrong prior).
     """
-    registrar = build_registrar(config.method, config.model_dir)
+    up = WORLD_UP if config.up_prior else None
+    registrar = build_registrar(config.method, config.model_dir, up)
     val_ids = _first(chairs.ids("val"), config.max_shapes)
     train_ids = _first(chairs.ids("train"), config.max_shapes)
     observed = metric_shapes(chairs, val_ids)

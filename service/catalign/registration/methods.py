@@ -1,27 +1,46 @@
-"""Registration methods by name, for the CLI and the evaluation."""
+"""Registration methods by name, for the CLI and the evaluation.
+
+* ``fpfh``: the classic baseline, Open3D's global registration recipe: FPFH at 2.5 cm voxels,
+  RANSAC inliers within 1.5 voxels, ICP within 1; rotation-invariant, so it ignores ``up``.
+* ``learned``: FCGF features from the trained ResUNet in ``model_store/`` (or ``model_dir``);
+  RANSAC inliers within 2 voxels (different instances never match exactly), ICP within 1.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from catalign.errors import ConfigError
 from catalign.registration.base import Registrar
 
 
-def _fpfh(model_dir: Path | None) -> Registrar:
-    from catalign.registration.fpfh import FPFHRegistrar
+def _fpfh(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+    from catalign.features.extractor import FPFHExtractor
+    from catalign.registration.pipeline import FeatureRegistrar
 
-    return FPFHRegistrar()
-
-
-def _learned(model_dir: Path | None) -> Registrar:
-    from catalign.registration.learned import LearnedRegistrar
-
-    return LearnedRegistrar(model_dir)
+    voxel = 0.025
+    extractor = FPFHExtractor(voxel)
+    return FeatureRegistrar(extractor, name="fpfh", ransac_distance=1.5 * voxel, icp_distance=voxel)
 
 
-METHODS: dict[str, Callable[[Path | None], Registrar]] = {"fpfh": _fpfh, "learned": _learned}
+def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+    from catalign.features.extractor import LearnedExtractor
+    from catalign.registration.pipeline import FeatureRegistrar
+
+    extractor = LearnedExtractor(model_dir)
+    voxel = extractor.voxel_size
+    return FeatureRegistrar(
+        extractor, name="learned", ransac_distance=2 * voxel, icp_distance=voxel, up=up
+    )
+
+
+METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {
+    "fpfh": _fpfh,
+    "learned": _learned,
+}
 
 
 def check_method(name: str) -> None:
@@ -30,7 +49,10 @@ def check_method(name: str) -> None:
         raise ConfigError(f"unknown method {name!r}; known methods: {', '.join(sorted(METHODS))}")
 
 
-def build_registrar(name: str, model_dir: Path | None = None) -> Registrar:
-    """The registrar called ``name`` (``model_dir``: weights of the learned method)."""
+def build_registrar(
+    name: str, model_dir: Path | None = None, up: np.ndarray | None = None
+) -> Registrar:
+    """The registrar called ``name``; ``model_dir`` holds the learned method's weights and
+    ``up`` is the world direction of the chair's up axis when known."""
     check_method(name)
-    return METHODS[name](model_dir)
+    return METHODS[name](model_dir, up)
