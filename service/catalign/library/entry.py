@@ -1,0 +1,172 @@
+"""One library entry: a shape turned into everything registration needs, computed once.
+
+A mesh is sampled by area (:data:`SURFACE_POINTS` points), a point cloud is subsampled to at
+most as many; both with a generator seeded from the source's sha256, so the same file always
+gives the same entry. Coordinates are converted to metres (``source * unit_factor(units)``)
+before anything is stored, so a pose found against an entry maps *source coordinates converted
+to metres* into the observation. The extractor then gives key points and features, and
+:func:`~catalign.library.retrieval.global_descriptor` the vector used for shortlisting.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from catalign.errors import DegenerateInputError, ShapeReadError
+from catalign.geometry.io import MeshData, ShapeData, read_shape
+from catalign.geometry.sampling import sample_surface, subsample
+from catalign.library.retrieval import global_descriptor
+from catalign.library.sources import SourceFile, unit_factor
+
+if TYPE_CHECKING:  # the extractor module imports torch; entries only need its interface
+    from catalign.features.extractor import FeatureExtractor
+
+SURFACE_POINTS = 10_000
+_CHUNK = 1 << 20
+
+
+@dataclass(frozen=True, eq=False)
+class LibraryEntry:
+    """A described library model; all coordinates in metres, arrays read-only once loaded.
+
+    ``points`` (N,3) float32 surface samples, ``keypoints`` (M,3) float64 and ``features`` (M,D)
+    float32 from the extractor, ``descriptor`` (K,) float32 for shortlisting, and the bounding
+    box of the whole source shape. ``source`` is the file path (or ``procedural:<seed>``),
+    ``source_sha256`` its checksum, ``units`` the unit the source was declared in.
+    """
+
+    model_id: str
+    points: np.ndarray
+    keypoints: np.ndarray
+    features: np.ndarray
+    descriptor: np.ndarray
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    size: np.ndarray
+    source: str
+    source_sha256: str
+    units: str
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoints)
+
+
+def file_sha256(path: Path) -> str:
+    """Hex sha256 of a file's bytes, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def mesh_sha256(mesh: MeshData) -> str:
+    """Hex sha256 of a mesh's arrays (float64 vertices then int64 faces, little-endian)."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(mesh.vertices, dtype="<f8").tobytes())
+    digest.update(np.ascontiguousarray(mesh.faces, dtype="<i8").tobytes())
+    return digest.hexdigest()
+
+
+def seed_from_checksum(sha256: str) -> int:
+    """A 64-bit generator seed taken from a hex checksum."""
+    return int(sha256[:16], 16)
+
+
+def describe_shape(
+    model_id: str,
+    shape: ShapeData,
+    extractor: FeatureExtractor,
+    *,
+    source: str,
+    source_sha256: str,
+    units: str = "m",
+    num_points: int = SURFACE_POINTS,
+) -> LibraryEntry:
+    """Sample, convert to metres and describe ``shape`` as the entry ``model_id``."""
+    factor = unit_factor(units)
+    rng = np.random.default_rng(seed_from_checksum(source_sha256))
+    if shape.mesh is not None:
+        vertices = shape.mesh.vertices * factor
+        try:
+            points = sample_surface(vertices, shape.mesh.faces, num_points, rng)
+        except ValueError as exc:  # zero surface area
+            raise ShapeReadError(f"{source}: cannot sample the mesh ({exc})") from exc
+        extent_points = vertices
+    else:
+        extent_points = shape.points * factor
+        points = subsample(extent_points, num_points, rng)
+    described = extractor.describe(np.ascontiguousarray(points, dtype=np.float64))
+    if len(described.keypoints) == 0:
+        raise DegenerateInputError(
+            f"{source}: the extractor found no key points in model {model_id!r} "
+            f"({len(points)} points, voxel size {extractor.voxel_size:g} m); "
+            "is the declared unit right?"
+        )
+    bbox_min = extent_points.min(axis=0).astype(np.float64)
+    bbox_max = extent_points.max(axis=0).astype(np.float64)
+    return LibraryEntry(
+        model_id=model_id,
+        points=np.ascontiguousarray(points, dtype=np.float32),
+        keypoints=np.ascontiguousarray(described.keypoints, dtype=np.float64),
+        features=np.ascontiguousarray(described.features, dtype=np.float32),
+        descriptor=global_descriptor(described.features),
+        bbox_min=bbox_min,
+        bbox_max=bbox_max,
+        size=bbox_max - bbox_min,
+        source=source,
+        source_sha256=source_sha256,
+        units=units,
+    )
+
+
+def describe_file(
+    source: SourceFile,
+    extractor: FeatureExtractor,
+    units: str = "m",
+    num_points: int = SURFACE_POINTS,
+) -> LibraryEntry:
+    """Read and describe one shape file (source recorded as its absolute path)."""
+    shape = read_shape(source.path)
+    return describe_shape(
+        source.model_id,
+        shape,
+        extractor,
+        source=str(source.path.resolve()),
+        source_sha256=file_sha256(source.path),
+        units=units,
+        num_points=num_points,
+    )
+
+
+def describe_procedural(
+    seed: int, extractor: FeatureExtractor, num_points: int = SURFACE_POINTS
+) -> LibraryEntry:
+    """Describe the procedural chair of ``seed`` as entry ``proc-NNNN`` (metres)."""
+    from catalign.data.procedural import generate_chair
+    from catalign.data.shapes import procedural_id
+
+    generated = generate_chair(seed)
+    mesh = MeshData(
+        vertices=np.asarray(generated.vertices, dtype=np.float64),
+        faces=np.asarray(generated.faces, dtype=np.int64),
+    )
+    return describe_shape(
+        procedural_id(seed),
+        ShapeData(points=mesh.vertices, mesh=mesh),
+        extractor,
+        source=f"procedural:{seed}",
+        source_sha256=mesh_sha256(mesh),
+        units="m",
+        num_points=num_points,
+    )

@@ -1,0 +1,380 @@
+"""The CAD library index: build, add, remove, load and inspect a library directory.
+
+Writers describe their shapes under the library's lock and stream each entry to its own file,
+then commit a new manifest (see :mod:`catalign.library.store` for why a crash never leaves a
+half-written library). :func:`load` checks the format version, the extractor fingerprint and
+every entry's checksum, and returns a :class:`Library` that keeps all arrays in memory, with the
+descriptors and sizes stacked for :func:`~catalign.library.retrieval.shortlist`.
+
+Poses found against an entry map the entry's stored coordinates, i.e. its *source coordinates
+converted to metres* (``source * unit_factor(units)``), into the observation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from tqdm import tqdm
+
+from catalign.data.shapes import procedural_id
+from catalign.errors import (
+    InvalidInputError,
+    LibraryCorruptError,
+    LibraryError,
+    LibraryMismatchError,
+    ModelNotFoundError,
+)
+from catalign.library.entry import (
+    SURFACE_POINTS,
+    LibraryEntry,
+    describe_file,
+    describe_procedural,
+)
+from catalign.library.sources import collect_sources, unit_factor
+from catalign.library.store import (
+    EntryRecord,
+    Manifest,
+    clean_unreferenced,
+    commit,
+    has_manifest,
+    read_entry,
+    read_manifest,
+    read_manifest_bytes,
+    rebuild_hint,
+    utc_now,
+    write_entry,
+    writer_lock,
+)
+
+if TYPE_CHECKING:  # the extractor module imports torch; the index only needs its interface
+    from catalign.features.extractor import FeatureExtractor
+
+logger = logging.getLogger(__name__)
+
+_LOAD_ATTEMPTS = 5  # a writer may replace the manifest while a reader reads the entries
+
+
+class Library:
+    """A loaded library: every entry in memory, plus stacked arrays for shortlisting.
+
+    Example::
+
+        library = load("model_store/library", extractor.fingerprint)
+        ids = shortlist(library, global_descriptor(query.features), np.ptp(points, axis=0), k=5)
+        model = library[ids[0]]  # LibraryEntry: points, keypoints, features, ...
+
+    ``ids`` are sorted; ``descriptors`` (E,K) float32 and ``sizes`` (E,3) float64 follow them.
+    """
+
+    def __init__(self, path: Path, manifest: Manifest, entries: Sequence[LibraryEntry]) -> None:
+        self.path = path
+        self.manifest = manifest
+        self.fingerprint = manifest.fingerprint
+        self.voxel_size = manifest.voxel_size
+        ordered = sorted(entries, key=lambda e: e.model_id)
+        self.ids: list[str] = [e.model_id for e in ordered]
+        self._entries = {e.model_id: e for e in ordered}
+        width = ordered[0].descriptor.shape[0] if ordered else 0
+        self.descriptors = np.zeros((len(ordered), width), dtype=np.float32)
+        self.sizes = np.zeros((len(ordered), 3), dtype=np.float64)
+        for row, entry in enumerate(ordered):
+            self.descriptors[row] = entry.descriptor
+            self.sizes[row] = entry.size
+        self.descriptors.flags.writeable = False
+        self.sizes.flags.writeable = False
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __contains__(self, model_id: object) -> bool:
+        return model_id in self._entries
+
+    def __getitem__(self, model_id: str) -> LibraryEntry:
+        try:
+            return self._entries[model_id]
+        except KeyError:
+            raise ModelNotFoundError(
+                f"no model {model_id!r} in the library at {self.path} ({len(self)} models)"
+            ) from None
+
+    def __iter__(self) -> Iterator[LibraryEntry]:
+        return iter(self._entries.values())
+
+    def __repr__(self) -> str:
+        return f"Library({str(self.path)!r}, {len(self)} models, extractor {self.fingerprint!r})"
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One entry to describe: its id, a label for messages, and the work itself."""
+
+    model_id: str
+    label: str
+    describe: Callable[[], LibraryEntry]
+
+
+def build(
+    sources: Sequence[str | Path],
+    out_dir: str | Path,
+    extractor: FeatureExtractor,
+    *,
+    units: str = "m",
+    ids: Sequence[str] | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    num_points: int = SURFACE_POINTS,
+) -> Manifest:
+    """Build a library in ``out_dir`` from shape files and folders (folders recursively).
+
+    Refuses a directory that already holds a library unless ``overwrite``; the old library stays
+    usable until the new manifest replaces it.
+    """
+    unit_factor(units)
+    found = collect_sources(sources, ids)
+    jobs = [
+        _Job(s.model_id, str(s.path), partial(describe_file, s, extractor, units, num_points))
+        for s in found
+    ]
+    return _write(
+        Path(out_dir), extractor, jobs, fresh=True, overwrite=overwrite, progress=progress
+    )
+
+
+def build_procedural(
+    out_dir: str | Path,
+    extractor: FeatureExtractor,
+    count: int,
+    first_seed: int = 0,
+    *,
+    overwrite: bool = False,
+    progress: bool = True,
+    num_points: int = SURFACE_POINTS,
+) -> Manifest:
+    """Build a library of ``count`` procedural chairs (ids ``proc-NNNN``, source
+    ``procedural:<seed>``), as shipped in ``model_store/library``."""
+    if count < 1:
+        raise InvalidInputError(f"a procedural library needs at least one chair, got {count}")
+    jobs = [
+        _Job(
+            procedural_id(seed),
+            f"procedural:{seed}",
+            partial(describe_procedural, seed, extractor, num_points),
+        )
+        for seed in range(first_seed, first_seed + count)
+    ]
+    return _write(
+        Path(out_dir), extractor, jobs, fresh=True, overwrite=overwrite, progress=progress
+    )
+
+
+def add(
+    library_dir: str | Path,
+    sources: Sequence[str | Path],
+    extractor: FeatureExtractor,
+    *,
+    units: str = "m",
+    ids: Sequence[str] | None = None,
+    replace: bool = False,
+    progress: bool = True,
+    num_points: int = SURFACE_POINTS,
+) -> Manifest:
+    """Add entries to an existing library, or with ``replace`` replace those whose id exists.
+
+    Adding an id the library already holds without ``replace`` raises InvalidInputError and
+    changes nothing.
+    """
+    library_dir = Path(library_dir)
+    unit_factor(units)
+    found = collect_sources(sources, ids)
+    read_manifest(library_dir)  # no library: fail before the lock creates any file
+    jobs = [
+        _Job(s.model_id, str(s.path), partial(describe_file, s, extractor, units, num_points))
+        for s in found
+    ]
+    return _write(library_dir, extractor, jobs, fresh=False, replace=replace, progress=progress)
+
+
+def remove(library_dir: str | Path, ids: Sequence[str]) -> Manifest:
+    """Remove entries by id; an unknown id raises ModelNotFoundError and changes nothing."""
+    library_dir = Path(library_dir)
+    ids = [ids] if isinstance(ids, str) else list(ids)
+    if not ids:
+        raise InvalidInputError("no model ids given to remove")
+    read_manifest(library_dir)
+    with writer_lock(library_dir):
+        current = read_manifest(library_dir)
+        missing = [i for i in ids if i not in current.entries]
+        if missing:
+            raise ModelNotFoundError(
+                f"no model {missing[0]!r} in the library at {library_dir} "
+                f"({len(current.entries)} models; see `catalign library list`)"
+            )
+        kept = {i: r for i, r in current.entries.items() if i not in set(ids)}
+        manifest = dataclasses.replace(current, updated=utc_now(), entries=kept)
+        commit(library_dir, manifest)
+    logger.info("removed %d model(s) from %s; %d left", len(ids), library_dir, len(kept))
+    return manifest
+
+
+def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
+    """Load and verify a library for an extractor (``None`` skips the fingerprint check).
+
+    Raises LibraryError if there is no library, LibraryCorruptError for a bad manifest, an
+    unknown format version or an entry that fails its checks, LibraryMismatchError if it was
+    built with another extractor.
+    """
+    library_dir = Path(library_dir)
+    for _ in range(_LOAD_ATTEMPTS):
+        raw = read_manifest_bytes(library_dir)
+        manifest = Manifest.from_bytes(raw, library_dir)
+        if extractor_fingerprint is not None:
+            _check_fingerprint(manifest, extractor_fingerprint, library_dir)
+        entries = _read_entries(library_dir, manifest, raw)
+        if entries is not None:
+            _check_descriptors(library_dir, entries)
+            logger.info("loaded library %s: %d models", library_dir, len(entries))
+            return Library(library_dir, manifest, entries)
+    raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
+
+
+def info(library_dir: str | Path) -> Manifest:
+    """The manifest (extractor, timestamps, one record per entry) without reading any array."""
+    return read_manifest(Path(library_dir))
+
+
+def list_models(library_dir: str | Path) -> list[str]:
+    """Sorted model ids of a library, from its manifest alone."""
+    return info(library_dir).ids
+
+
+def _write(
+    library_dir: Path,
+    extractor: FeatureExtractor,
+    jobs: Sequence[_Job],
+    *,
+    fresh: bool,
+    overwrite: bool = False,
+    replace: bool = False,
+    progress: bool,
+) -> Manifest:
+    """Describe ``jobs`` and commit them: a new library (``fresh``) or onto the current one."""
+    written: set[str] = set()
+    with writer_lock(library_dir):
+        now = utc_now()
+        if fresh:
+            if has_manifest(library_dir) and not overwrite:
+                raise LibraryError(
+                    f"{library_dir} already holds a library; pass overwrite=True (--overwrite) "
+                    "to replace it, or add to it with `catalign library add`"
+                )
+            records: dict[str, EntryRecord] = {}
+            created = now
+        else:
+            current = read_manifest(library_dir)
+            _check_fingerprint(current, extractor.fingerprint, library_dir)
+            _check_new_ids(current, jobs, replace, library_dir)
+            records = dict(current.entries)
+            created = current.created
+        try:
+            bar = tqdm(
+                jobs,
+                desc=f"describing models for {library_dir.name}",
+                unit="model",
+                disable=not progress,
+            )
+            for job in bar:
+                bar.set_postfix_str(job.model_id, refresh=False)
+                record = write_entry(library_dir, job.describe())
+                written.add(record.file)
+                records[job.model_id] = record
+                logger.debug("described %s from %s", job.model_id, job.label)
+            manifest = Manifest(
+                fingerprint=extractor.fingerprint,
+                voxel_size=float(extractor.voxel_size),
+                created=created,
+                updated=now,
+                entries=records,
+            )
+            commit(library_dir, manifest)
+        except Exception:
+            _clean_after_failure(library_dir, written)
+            raise
+    logger.info("wrote %d model(s) to %s; %d in all", len(jobs), library_dir, len(records))
+    return manifest
+
+
+def _check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
+    if manifest.fingerprint != fingerprint:
+        raise LibraryMismatchError(
+            f"the library at {library_dir} was built with feature extractor "
+            f"{manifest.fingerprint!r}, but this one is {fingerprint!r}, so their features are "
+            f"not comparable; {rebuild_hint(library_dir)} (with the current extractor)"
+        )
+
+
+def _check_new_ids(
+    manifest: Manifest, jobs: Sequence[_Job], replace: bool, library_dir: Path
+) -> None:
+    if replace:
+        return
+    for job in jobs:
+        if job.model_id in manifest.entries:
+            raise InvalidInputError(
+                f"model {job.model_id!r} (from {job.label}) is already in the library at "
+                f"{library_dir} (from {manifest.entries[job.model_id].source}); "
+                "pass replace=True (--replace) to replace it, or give it another id"
+            )
+
+
+def _read_entries(library_dir: Path, manifest: Manifest, raw: bytes) -> list[LibraryEntry] | None:
+    """Every entry of ``manifest``; None if a file vanished because a writer replaced it."""
+    entries = []
+    for model_id in manifest.ids:
+        record = manifest.entries[model_id]
+        try:
+            entries.append(read_entry(library_dir, model_id, record))
+        except FileNotFoundError:
+            if _manifest_changed(library_dir, raw):
+                return None
+            raise LibraryCorruptError(
+                f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
+                f"remove the entry or {rebuild_hint(library_dir)}"
+            ) from None
+    return entries
+
+
+def _manifest_changed(library_dir: Path, raw: bytes) -> bool:
+    try:
+        return read_manifest_bytes(library_dir) != raw
+    except LibraryError:
+        return True
+
+
+def _check_descriptors(library_dir: Path, entries: Sequence[LibraryEntry]) -> None:
+    widths = {e.descriptor.shape[0] for e in entries}
+    if len(widths) > 1:
+        raise LibraryCorruptError(
+            f"the entries of {library_dir} have descriptors of different lengths "
+            f"({sorted(widths)}); {rebuild_hint(library_dir)}"
+        )
+
+
+def _clean_after_failure(library_dir: Path, written: set[str]) -> None:
+    """Best effort: drop files a failed write left, keeping all the current manifest uses."""
+    try:
+        try:
+            current = read_manifest(library_dir)
+        except LibraryError:  # no (usable) manifest: only delete what this write created
+            for name in written:
+                (library_dir / name).unlink(missing_ok=True)
+            return
+        clean_unreferenced(library_dir, {r.file for r in current.entries.values()})
+    except OSError as exc:
+        logger.warning("could not clean up after a failed write to %s: %s", library_dir, exc)

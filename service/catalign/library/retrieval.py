@@ -1,0 +1,86 @@
+"""Shortlisting: which library models are worth registering a query against.
+
+Registration is expensive per candidate, so a query is first compared with every entry through a
+cheap global descriptor (:func:`global_descriptor`, the same function at build and query time)
+and a size check: a partial view can be smaller than the model it shows but not much larger, so
+a query whose largest extent exceeds a model's bounding-box diagonal (the longest distance
+inside any box that holds the model, whatever the query's orientation) is penalised.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from catalign.errors import DegenerateInputError, InvalidInputError
+
+if TYPE_CHECKING:
+    from catalign.library.index import Library
+
+SIZE_TOLERANCE = 0.15  # noise and stray points may stretch a view this much past the model
+SIZE_PENALTY = 2.0  # score lost per unit of relative excess beyond the tolerance
+_EPS = 1e-12
+
+
+def global_descriptor(features: np.ndarray) -> np.ndarray:
+    """One float32 vector per cloud: L2-normalised mean and max of its key-point features."""
+    feats = np.asarray(features, dtype=np.float64)
+    if feats.ndim != 2 or len(feats) == 0 or feats.shape[1] == 0:
+        raise DegenerateInputError(
+            f"a global descriptor needs an (M, D) array of features, got shape {feats.shape}"
+        )
+    return np.concatenate([_unit(feats.mean(axis=0)), _unit(feats.max(axis=0))]).astype(np.float32)
+
+
+def retrieval_scores(
+    library: Library, query_descriptor: np.ndarray, query_size: np.ndarray | None
+) -> np.ndarray:
+    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalty.
+
+    ``query_size`` is the query's bounding-box extents (``np.ptp(points, axis=0)``), in metres;
+    ``None`` skips the size check.
+    """
+    if len(library) == 0:
+        return np.zeros(0)
+    query = np.asarray(query_descriptor, dtype=np.float64).reshape(-1)
+    if query.shape[0] != library.descriptors.shape[1]:
+        raise InvalidInputError(
+            f"the query descriptor has {query.shape[0]} values but the library's have "
+            f"{library.descriptors.shape[1]}; were they made by the same extractor?"
+        )
+    models = library.descriptors.astype(np.float64)
+    norms = np.linalg.norm(models, axis=1) * np.linalg.norm(query)
+    scores = models @ query / np.maximum(norms, _EPS)
+    if query_size is not None:
+        scores -= size_penalty(np.asarray(query_size, dtype=np.float64), library.sizes)
+    return scores
+
+
+def size_penalty(query_size: np.ndarray, model_sizes: np.ndarray) -> np.ndarray:
+    """Penalty (E,) for a query larger than each model: 0 up to the tolerance, then linear."""
+    diagonals = np.linalg.norm(np.asarray(model_sizes, dtype=np.float64), axis=1)
+    excess = float(np.max(query_size)) / np.maximum(diagonals, _EPS) - (1.0 + SIZE_TOLERANCE)
+    return SIZE_PENALTY * np.clip(excess, 0.0, None)
+
+
+def shortlist(
+    library: Library,
+    query_descriptor: np.ndarray,
+    query_size: np.ndarray | None,
+    k: int | None,
+) -> list[str]:
+    """Ids of the ``k`` best entries, best first (ties by id); all of them when ``k`` is None
+    or at least ``len(library)``."""
+    if k is not None and k < 1:
+        raise InvalidInputError(f"the shortlist size must be at least 1, got {k}")
+    scores = retrieval_scores(library, query_descriptor, query_size)
+    ids = library.ids
+    order = sorted(range(len(ids)), key=lambda i: (-scores[i], ids[i]))
+    if k is not None:
+        order = order[:k]
+    return [ids[i] for i in order]
+
+
+def _unit(vector: np.ndarray) -> np.ndarray:
+    return vector / max(float(np.linalg.norm(vector)), _EPS)

@@ -1,0 +1,113 @@
+"""Fixtures for the library tests: a fast deterministic extractor and real shape files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from catalign.features.extractor import Described
+from catalign.geometry.sampling import voxel_downsample
+
+
+class FakeExtractor:
+    """Voxel centroids with 4-D features (offset from the centre and its length): fast and
+    deterministic, and different shapes get different descriptors."""
+
+    voxel_size = 0.05
+    fingerprint = "fake-v1"
+
+    def describe(self, points: np.ndarray) -> Described:
+        centroids, _ = voxel_downsample(points, self.voxel_size)
+        offsets = centroids - centroids.mean(axis=0)
+        radius = np.linalg.norm(offsets, axis=1, keepdims=True)
+        return Described(centroids, np.hstack([offsets, radius]).astype(np.float32))
+
+
+@pytest.fixture
+def extractor() -> FakeExtractor:
+    return FakeExtractor()
+
+
+def random_cloud(seed: int, count: int = 600, scale: float = 0.4) -> np.ndarray:
+    """Points uniform in a cube of half-side ``scale`` (metres)."""
+    return np.random.default_rng(seed).uniform(-scale, scale, size=(count, 3))
+
+
+def write_cloud(path: Path, points: np.ndarray) -> Path:
+    """Write points as .npy, .xyz, .pcd or .ply (by suffix)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".npy":
+        np.save(path, points)
+    elif path.suffix == ".xyz":
+        np.savetxt(path, points)
+    else:
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        o3d.io.write_point_cloud(str(path), cloud)
+    return path
+
+
+def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh.export(path)
+    return path
+
+
+class ShapeFiles:
+    """Writes shape files under one folder (tests get it as the ``files`` fixture)."""
+
+    random_cloud = staticmethod(random_cloud)
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+
+    def cloud(self, name: str, seed: int = 0, count: int = 600, scale: float = 0.4) -> Path:
+        return write_cloud(self.root / name, random_cloud(seed, count, scale))
+
+    def points(self, name: str, points: np.ndarray) -> Path:
+        return write_cloud(self.root / name, points)
+
+    def mesh(self, name: str, mesh: trimesh.Trimesh) -> Path:
+        return write_mesh(self.root / name, mesh)
+
+    def box(self, name: str, extents: tuple[float, float, float] = (0.5, 0.9, 0.5)) -> Path:
+        return self.mesh(name, trimesh.creation.box(extents=extents))
+
+
+@pytest.fixture
+def files(tmp_path: Path) -> ShapeFiles:
+    return ShapeFiles(tmp_path / "src")
+
+
+@pytest.fixture
+def mixed_folder(files: ShapeFiles) -> Path:
+    """A folder tree with every supported format and one file to ignore."""
+    files.box("box.ply")
+    files.mesh("sub/cylinder.obj", trimesh.creation.cylinder(radius=0.3, height=0.8))
+    files.mesh("sub/sphere.stl", trimesh.creation.icosphere(radius=0.35))
+    files.mesh("cone.off", trimesh.creation.cone(radius=0.3, height=0.7))
+    files.mesh("deep/er/capsule.glb", trimesh.creation.capsule(height=0.6, radius=0.2))
+    files.cloud("big.npy", seed=1, count=12_000)
+    files.cloud("sub/scan.xyz", seed=2)
+    files.cloud("scan2.pcd", seed=3)
+    files.cloud("points.ply", seed=4)
+    (files.root / "README.txt").write_text("not a shape")
+    return files.root
+
+
+def _snapshot(library_dir: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(library_dir)): p.read_bytes()
+        for p in sorted(library_dir.rglob("*"))
+        if p.is_file() and p.name != ".lock"
+    }
+
+
+@pytest.fixture
+def snapshot():
+    """Function: every file of a library (lock file aside) and its bytes."""
+    return _snapshot

@@ -1,0 +1,278 @@
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+
+import numpy as np
+import pytest
+
+import catalign.library as library_api
+from catalign.errors import InvalidInputError, LibraryError, ModelNotFoundError
+from catalign.features.extractor import FPFHExtractor
+from catalign.geometry.io import read_shape
+from catalign.library import (
+    Library,
+    add,
+    build,
+    build_procedural,
+    info,
+    list_models,
+    load,
+    remove,
+)
+from catalign.library.entry import SURFACE_POINTS, describe_file, mesh_sha256
+from catalign.library.sources import SourceFile
+
+
+def referenced_files(library_dir) -> set[str]:
+    return {r.file.split("/")[1] for r in info(library_dir).entries.values()}
+
+
+def entry_files(library_dir) -> set[str]:
+    return {p.name for p in (library_dir / "entries").iterdir()}
+
+
+def assert_same_entries(left: Library, right: Library) -> None:
+    assert left.ids == right.ids
+    for a, b in zip(left, right, strict=True):
+        for name in ("points", "keypoints", "features", "descriptor", "bbox_min", "bbox_max"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert (a.source, a.source_sha256, a.units) == (b.source, b.source_sha256, b.units)
+    np.testing.assert_array_equal(left.descriptors, right.descriptors)
+    np.testing.assert_array_equal(left.sizes, right.sizes)
+
+
+def test_exports_do_not_drift():
+    assert library_api.__all__ == sorted(library_api.__all__, key=lambda n: (not n.isupper(), n))
+    assert set(library_api.__all__) == {
+        "FORMAT_VERSION",
+        "MODEL_ID_PATTERN",
+        "SURFACE_POINTS",
+        "UNIT_FACTORS",
+        "EntryRecord",
+        "Library",
+        "LibraryEntry",
+        "Manifest",
+        "add",
+        "build",
+        "build_procedural",
+        "global_descriptor",
+        "info",
+        "list_models",
+        "load",
+        "remove",
+        "retrieval_scores",
+        "shortlist",
+        "validate_model_id",
+    }
+
+
+def test_build_from_a_folder_of_mixed_formats(mixed_folder, tmp_path, extractor):
+    out = tmp_path / "lib"
+    manifest = build([mixed_folder], out, extractor, progress=False)
+    meshes = {"box", "capsule", "cone", "cylinder", "sphere"}
+    clouds = {"big", "points", "scan", "scan2"}
+    assert manifest.ids == sorted(meshes | clouds)
+
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk["format_version"] == 1
+    assert on_disk["extractor"] == {"fingerprint": "fake-v1", "voxel_size": 0.05}
+    assert on_disk["created"] == on_disk["updated"] and on_disk["created"].endswith("+00:00")
+
+    lib = load(out, extractor.fingerprint)
+    assert len(lib) == 9 and lib.ids == manifest.ids
+    assert lib.descriptors.shape == (9, 8) and lib.descriptors.dtype == np.float32
+    assert lib.sizes.shape == (9, 3)
+    for entry in lib:
+        record = manifest.entries[entry.model_id]
+        source = next(mixed_folder.rglob(f"{entry.model_id}.*"))
+        assert record.source == str(source.resolve()) == entry.source
+        assert record.source_sha256 == hashlib.sha256(source.read_bytes()).hexdigest()
+        assert record.file == f"entries/{entry.model_id}-{record.sha256[:12]}.npz"
+        assert record.sha256 == hashlib.sha256((out / record.file).read_bytes()).hexdigest()
+        expected = SURFACE_POINTS if entry.model_id in meshes | {"big"} else 600
+        assert entry.points.shape == (expected, 3) and entry.points.dtype == np.float32
+        assert record.num_points == expected and record.num_keypoints == len(entry.keypoints)
+        assert entry.features.shape == (len(entry.keypoints), 4)
+        assert entry.features.dtype == np.float32 and entry.descriptor.shape == (8,)
+        full = read_shape(source).points
+        np.testing.assert_allclose(entry.bbox_min, full.min(axis=0))
+        np.testing.assert_allclose(entry.size, np.ptp(full, axis=0))
+        assert list(record.size) == entry.size.tolist()
+        assert not entry.points.flags.writeable  # shared between requests: read-only
+    np.testing.assert_allclose(lib["box"].size, [0.5, 0.9, 0.5])
+
+
+def test_sampling_is_deterministic(files, extractor):
+    path = files.box("box.obj")
+    first = describe_file(SourceFile("box", path), extractor)
+    second = describe_file(SourceFile("box", path), extractor)
+    np.testing.assert_array_equal(first.points, second.points)
+
+
+def test_units_mm_scales_everything_to_metres(files, tmp_path, extractor):
+    points_mm = files.random_cloud(5, count=500, scale=400.0)
+    files.points("scan_mm.npy", points_mm)
+    files.box("box_mm.stl", extents=(500.0, 900.0, 450.0))
+    out = tmp_path / "lib"
+    manifest = build([files.root], out, extractor, units="mm", progress=False)
+    lib = load(out, extractor.fingerprint)
+    np.testing.assert_allclose(lib["scan_mm"].points, points_mm * 0.001, rtol=1e-6)
+    np.testing.assert_allclose(lib["box_mm"].size, [0.5, 0.9, 0.45])
+    assert np.abs(lib["box_mm"].points).max() <= 0.45 + 1e-6
+    assert {r.units for r in manifest.entries.values()} == {"mm"}
+    assert lib["box_mm"].units == "mm"
+
+
+def test_build_add_remove_reload_round_trip(files, tmp_path, extractor):
+    out = tmp_path / "lib"
+    first = build([files.cloud("a.npy", 1), files.box("b.obj")], out, extractor, progress=False)
+    lib_before = load(out, extractor.fingerprint)
+
+    added = add(out, [files.cloud("c.xyz", 3)], extractor, ids=["c-1"], progress=False)
+    assert added.ids == ["a", "b", "c-1"] and added.created == first.created
+    removed = remove(out, ["a"])
+    assert removed.ids == ["b", "c-1"]
+    assert info(out) == removed and list_models(out) == ["b", "c-1"]
+    assert json.loads((out / "manifest.json").read_text()) == removed.to_json()
+    assert entry_files(out) == referenced_files(out)  # a's file is gone
+
+    lib = load(out, extractor.fingerprint)
+    assert lib.ids == ["b", "c-1"] and "a" not in lib and "b" in lib
+    again = load(out, extractor.fingerprint)
+    assert_same_entries(lib, again)
+    np.testing.assert_array_equal(lib["b"].points, lib_before["b"].points)
+    fresh = describe_file(SourceFile("c-1", files.root / "c.xyz"), extractor)
+    np.testing.assert_array_equal(lib["c-1"].keypoints, fresh.keypoints)
+    np.testing.assert_array_equal(lib["c-1"].features, fresh.features)
+    with pytest.raises(ModelNotFoundError, match="'a'"):
+        lib["a"]
+
+
+def test_adding_an_existing_id_without_replace_changes_nothing(
+    files, tmp_path, extractor, snapshot
+):
+    out = tmp_path / "lib"
+    build([files.cloud("a.npy", 1)], out, extractor, progress=False)
+    before = snapshot(out)
+    other = files.cloud("other/a.npy", 2)
+    with pytest.raises(InvalidInputError, match=r"'a'.*already in the library.*--replace"):
+        add(out, [other], extractor, progress=False)
+    assert snapshot(out) == before
+
+
+def test_replace_swaps_the_entry_and_deletes_its_old_file(files, tmp_path, extractor):
+    out = tmp_path / "lib"
+    build([files.cloud("a.npy", 1), files.cloud("b.npy", 2)], out, extractor, progress=False)
+    old = info(out).entries["a"]
+    new_source = files.cloud("v2/a.npy", 7)
+    manifest = add(out, [new_source], extractor, replace=True, progress=False)
+    record = manifest.entries["a"]
+    assert record.file != old.file and not (out / old.file).exists()
+    assert record.source_sha256 == hashlib.sha256(new_source.read_bytes()).hexdigest()
+    assert entry_files(out) == referenced_files(out)
+    lib = load(out, extractor.fingerprint)
+    np.testing.assert_allclose(lib["a"].points, np.load(new_source), rtol=1e-6)
+
+
+def test_build_refuses_an_existing_library_unless_overwrite(files, tmp_path, extractor):
+    out = tmp_path / "lib"
+    build([files.cloud("a.npy", 1)], out, extractor, progress=False)
+    old_files = entry_files(out)
+    with pytest.raises(LibraryError, match="already holds a library"):
+        build([files.cloud("x/b.npy", 2)], out, extractor, progress=False)
+    assert list_models(out) == ["a"]
+    build([files.root / "x" / "b.npy"], out, extractor, overwrite=True, progress=False)
+    assert list_models(out) == ["b"] and not old_files & entry_files(out)
+
+
+def test_add_and_remove_need_an_existing_library(files, tmp_path, extractor):
+    with pytest.raises(LibraryError, match=r"no library at .*catalign library build"):
+        add(tmp_path / "nowhere", [files.cloud("a.npy")], extractor, progress=False)
+    assert not (tmp_path / "nowhere").exists()
+    with pytest.raises(LibraryError, match="no library"):
+        remove(tmp_path / "nowhere", ["a"])
+
+
+def test_remove_unknown_id(files, tmp_path, extractor, snapshot):
+    out = tmp_path / "lib"
+    build([files.cloud("a.npy", 1), files.cloud("b.npy", 2)], out, extractor, progress=False)
+    before = snapshot(out)
+    with pytest.raises(ModelNotFoundError, match="'zzz'"):
+        remove(out, ["a", "zzz"])
+    assert snapshot(out) == before
+
+
+def test_a_shape_without_key_points_is_refused(files, tmp_path):
+    files.cloud("a.npy", 1)
+    with pytest.raises(InvalidInputError, match=r"a.npy: the extractor found no key points"):
+        build([files.root], tmp_path / "lib", _EmptyExtractor(), progress=False)
+    assert not (tmp_path / "lib" / "manifest.json").exists()
+
+
+class _EmptyExtractor:
+    voxel_size = 0.05
+    fingerprint = "empty"
+
+    def describe(self, points):
+        from catalign.features.extractor import Described
+
+        return Described(np.zeros((0, 3)), np.zeros((0, 4), dtype=np.float32))
+
+
+def test_concurrent_writers_in_one_process_are_serialised(files, tmp_path, extractor):
+    out = tmp_path / "lib"
+    build([files.cloud("base.npy", 0)], out, extractor, progress=False)
+    sources = [files.cloud(f"t{i}.npy", i + 1) for i in range(6)]
+    errors: list[BaseException] = []
+
+    def worker(path):
+        try:
+            add(out, [path], extractor, progress=False)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(p,)) for p in sources]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    assert list_models(out) == ["base"] + [f"t{i}" for i in range(6)]
+    assert len(load(out, extractor.fingerprint)) == 7
+
+
+def test_build_procedural_with_fpfh(tmp_path):
+    extractor = FPFHExtractor(voxel_size=0.05)
+    manifest = build_procedural(tmp_path / "lib", extractor, 3, first_seed=4, progress=False)
+    assert manifest.ids == ["proc-0004", "proc-0005", "proc-0006"]
+    assert manifest.fingerprint == "fpfh-v1-0.05"
+    lib = load(tmp_path / "lib", extractor.fingerprint)
+    entry = lib["proc-0005"]
+    assert entry.source == "procedural:5" and entry.units == "m"
+    from catalign.data.procedural import generate_chair
+    from catalign.geometry.io import MeshData
+
+    chair = generate_chair(5)
+    assert entry.source_sha256 == mesh_sha256(MeshData(chair.vertices, chair.faces))
+    np.testing.assert_allclose(entry.size, chair.extents)
+    assert entry.points.shape == (SURFACE_POINTS, 3) and entry.features.shape[1] == 33
+    assert lib.descriptors.shape == (3, 66)
+    # reproducible: the same chairs give byte-identical entry files
+    again = build_procedural(tmp_path / "again", extractor, 3, first_seed=4, progress=False)
+    assert {i: r.sha256 for i, r in again.entries.items()} == {
+        i: r.sha256 for i, r in manifest.entries.items()
+    }
+    with pytest.raises(InvalidInputError, match="at least one chair"):
+        build_procedural(tmp_path / "none", extractor, 0)
+
+
+def test_mesh_with_zero_area_is_a_read_error(files, tmp_path, extractor):
+    from catalign.errors import ShapeReadError
+
+    path = files.root / "flat.obj"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    with pytest.raises(ShapeReadError, match=r"flat.obj"):
+        build([path], tmp_path / "lib", extractor, progress=False)

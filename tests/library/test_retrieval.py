@@ -1,0 +1,87 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.library import Library, LibraryEntry, build, global_descriptor, load, shortlist
+from catalign.library.retrieval import retrieval_scores
+from catalign.library.store import Manifest
+
+
+def synthetic_library(descriptors: np.ndarray, sizes: np.ndarray) -> Library:
+    entries = []
+    for i, (descriptor, size) in enumerate(zip(descriptors, sizes, strict=True)):
+        size = np.asarray(size, dtype=np.float64)
+        entries.append(
+            LibraryEntry(
+                model_id=f"m{i}",
+                points=np.zeros((1, 3), np.float32),
+                keypoints=np.zeros((1, 3)),
+                features=np.zeros((1, 2), np.float32),
+                descriptor=np.asarray(descriptor, np.float32),
+                bbox_min=-size / 2,
+                bbox_max=size / 2,
+                size=size,
+                source="test",
+                source_sha256="0" * 64,
+                units="m",
+            )
+        )
+    manifest = Manifest(fingerprint="x", voxel_size=0.05, created="", updated="")
+    return Library(Path("mem"), manifest, entries)
+
+
+def test_global_descriptor():
+    features = np.random.default_rng(0).normal(size=(50, 5)).astype(np.float32)
+    descriptor = global_descriptor(features)
+    assert descriptor.shape == (10,) and descriptor.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(descriptor[:5]), 1, rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(descriptor[5:]), 1, rtol=1e-6)
+    np.testing.assert_allclose(descriptor, global_descriptor(features[::-1]))  # order-free
+    with pytest.raises(DegenerateInputError):
+        global_descriptor(np.zeros((0, 5)))
+
+
+def test_shortlist_finds_an_entry_from_its_own_descriptor(files, tmp_path, extractor):
+    sources = [files.cloud(f"c{i}.npy", i, scale=0.2 + 0.1 * i) for i in range(4)]
+    sources.append(files.box("box.obj"))
+    build(sources, tmp_path / "lib", extractor, progress=False)
+    lib = load(tmp_path / "lib", extractor.fingerprint)
+    for entry in lib:
+        ranked = shortlist(lib, entry.descriptor, entry.size, k=2)
+        assert ranked[0] == entry.model_id and len(ranked) == 2
+    query = lib["c2"]
+    assert shortlist(lib, query.descriptor, query.size, k=None) == shortlist(
+        lib, query.descriptor, query.size, k=99
+    )
+    assert sorted(shortlist(lib, query.descriptor, None, None)) == lib.ids
+
+
+def test_a_query_larger_than_a_model_is_demoted():
+    lib = synthetic_library(
+        descriptors=np.array([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0]]),
+        sizes=np.array([[0.1, 0.1, 0.1], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]),
+    )
+    query = np.array([1.0, 0.0])
+    assert shortlist(lib, query, None, k=None) == ["m0", "m1", "m2"]
+    # a 0.8 m wide view cannot come from a model 0.17 m across
+    assert shortlist(lib, query, np.array([0.8, 0.3, 0.2]), k=None) == ["m1", "m2", "m0"]
+    # a small view fits anywhere: no penalty
+    np.testing.assert_allclose(
+        retrieval_scores(lib, query, np.array([0.05, 0.05, 0.05])),
+        retrieval_scores(lib, query, None),
+    )
+
+
+def test_shortlist_arguments():
+    lib = synthetic_library(np.eye(3), np.ones((3, 3)))
+    with pytest.raises(InvalidInputError, match="at least 1"):
+        shortlist(lib, np.ones(3), None, k=0)
+    with pytest.raises(InvalidInputError, match="4 values but the library's have 3"):
+        shortlist(lib, np.ones(4), None, k=1)
+    assert shortlist(lib, np.ones(3), None, k=None) == ["m0", "m1", "m2"]  # ties by id
+    empty = synthetic_library(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert len(empty) == 0 and shortlist(empty, np.ones(3), None, k=3) == []
