@@ -1,0 +1,112 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import procedural_shape
+from catalign.data.views import random_camera, random_object_pose, render_view
+from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.geometry.se3 import random_rotation
+from catalign.registration.validation import validate_cloud
+
+VOXEL = 0.025
+
+
+def box_surface(rng: np.random.Generator, n: int, extents=(0.4, 0.6, 0.3)) -> np.ndarray:
+    """Points on the faces of a box: a small, clearly three-dimensional cloud."""
+    points = rng.random((n, 3))
+    axis = rng.integers(0, 3, size=n)
+    points[np.arange(n), axis] = rng.integers(0, 2, size=n)
+    return points * np.asarray(extents)
+
+
+def test_accepts_lists_and_float32_and_returns_float64(rng):
+    points = box_surface(rng, 3000)
+    for given in (points.tolist(), points.astype(np.float32), points):
+        cloud = validate_cloud(given, voxel_size=VOXEL)
+        assert cloud.dtype == np.float64 and cloud.shape == (3000, 3)
+        np.testing.assert_allclose(cloud, points, atol=1e-6)
+    assert validate_cloud(points, voxel_size=VOXEL) is not points  # a copy the caller may keep
+
+
+@pytest.mark.parametrize(
+    "points",
+    [
+        np.zeros((10, 2)),
+        np.zeros(3),
+        np.zeros((10, 3, 1)),
+        [[0.0, 1.0, 2.0], [3.0, 4.0]],
+        [["a", "b", "c"]],
+        None,
+    ],
+)
+def test_refuses_a_wrong_shape(points):
+    with pytest.raises(InvalidInputError, match=r"\(N, 3\)") as caught:
+        validate_cloud(points, voxel_size=VOXEL)
+    assert not isinstance(caught.value, DegenerateInputError)
+
+
+def test_refuses_an_empty_cloud():
+    for empty in (np.empty((0, 3)), [], np.empty((0, 3), dtype=np.float32)):
+        with pytest.raises(InvalidInputError, match="empty"):
+            validate_cloud(empty, voxel_size=VOXEL)
+
+
+def test_refuses_non_finite_points_and_says_how_many(rng):
+    points = box_surface(rng, 1000)
+    points[[3, 50]] = np.nan
+    points[7, 2] = np.inf
+    with pytest.raises(InvalidInputError, match="3 of 1000 points have NaN or infinite"):
+        validate_cloud(points, voxel_size=VOXEL)
+
+
+def test_refuses_more_than_max_points(rng):
+    points = box_surface(rng, 1000)
+    with pytest.raises(InvalidInputError, match="1000 points, more than the 999 allowed"):
+        validate_cloud(points, voxel_size=VOXEL, max_points=999)
+    assert len(validate_cloud(points, voxel_size=VOXEL, max_points=1000)) == 1000
+
+
+def test_refuses_a_bad_voxel_size(rng):
+    for voxel_size in (0.0, -1.0, float("nan"), "0.1"):
+        with pytest.raises(InvalidInputError, match="voxel_size"):
+            validate_cloud(box_surface(rng, 100), voxel_size=voxel_size)
+
+
+def test_refuses_too_few_voxels_and_says_how_many(rng):
+    blob = rng.normal(scale=0.002, size=(5000, 3))  # thousands of points, a handful of voxels
+    with pytest.raises(DegenerateInputError, match=r"only \d+ voxels of 0.025 m, at least 50"):
+        validate_cloud(blob, voxel_size=VOXEL)
+    with pytest.raises(DegenerateInputError, match="at least 10000 are needed"):
+        validate_cloud(box_surface(rng, 3000), voxel_size=VOXEL, min_points=10_000)
+
+
+def test_refuses_a_noisy_flat_square(rng):
+    square = np.c_[rng.uniform(-0.5, 0.5, size=(5000, 2)), rng.normal(scale=0.002, size=5000)]
+    tilted = square @ random_rotation(rng).T + np.array([1.0, -2.0, 0.5])
+    with pytest.raises(DegenerateInputError, match="lie on a plane"):
+        validate_cloud(tilted, voxel_size=VOXEL)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.002])
+def test_refuses_a_line(rng, noise: float):
+    line = rng.uniform(0.0, 1.0, size=(2000, 1)) * np.array([[0.3, -0.8, 0.5]])
+    line += rng.normal(scale=noise, size=line.shape)
+    with pytest.raises(DegenerateInputError, match="lie on a line"):
+        validate_cloud(line, voxel_size=VOXEL)
+
+
+def test_accepts_a_large_plane_with_an_object_on_it(rng):
+    """Thin relative to its size (2.7 % of the extent) but with relief of many voxels: a wall or
+    floor with a 30 cm box in front of it can still be registered."""
+    floor = np.c_[rng.uniform(-2.0, 2.0, size=(100_000, 2)), np.zeros(100_000)]
+    validate_cloud(np.r_[floor, box_surface(rng, 20_000, (0.3, 0.3, 0.3))], voxel_size=VOXEL)
+
+
+def test_accepts_partial_views_of_procedural_chairs():
+    for seed in range(31):
+        shape = procedural_shape(seed)
+        rng = np.random.default_rng(seed)
+        pose = random_object_pose(rng, "upright", height=shape.height / 2)
+        points = render_view(shape, pose, random_camera(pose[:3, 3], rng), rng)
+        assert validate_cloud(points, voxel_size=VOXEL).shape == points.shape
