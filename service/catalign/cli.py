@@ -139,12 +139,13 @@ def train(
     batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = 2,
     voxel_size: Annotated[float, typer.Option(help="Voxel size in metres.")] = 0.025,
     rotation: Annotated[
-        str, typer.Option(help="Augmentation: upright (yaw, small tilt) or so3 (any rotation).")
+        str, typer.Option(help="Augmentation: upright (any yaw), yaw-bin (+-22.5 deg) or so3.")
     ] = "upright",
     procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
     learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = 0,
     validate_every: Annotated[int, typer.Option(min=1, help="Steps between validations.")] = 100,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = 2,
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a shared stage 1).")
     ] = None,
@@ -176,6 +177,7 @@ def train(
             seed=seed,
             validate_every=validate_every,
             init_from=init_from,
+            threads=threads,
         )
     except ValidationError as error:
         first = error.errors()[0]

@@ -46,6 +46,7 @@ class RegistrationResult:
     candidates: list[Candidate]
     timings_ms: dict[str, float]
     correspondences: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    scale: float = 1.0
 
 
 class Registrar(ABC):

@@ -2,8 +2,10 @@
 
 * ``fpfh``: the classic baseline, Open3D's global registration recipe: FPFH at 2.5 cm voxels,
   RANSAC inliers within 1.5 voxels, ICP within 1; rotation-invariant, so it ignores ``up``.
-* ``learned``: FCGF features from the trained ResUNet in ``model_store/`` (or ``model_dir``);
-  RANSAC inliers within 2 voxels (different instances never match exactly), ICP within 1.
+* ``learned``: FCGF features from the trained ResUNet in ``model_store/`` (or ``model_dir``)
+  through a real library index and the query :class:`~catalign.registration.engine.Engine`
+  (vectorised RANSAC with inliers within 2 voxels, since different instances never match
+  exactly; ICP within 1; the up prior when given).
 """
 
 from __future__ import annotations
@@ -28,13 +30,10 @@ def _fpfh(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
 
 def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
     from catalign.features.extractor import LearnedExtractor
-    from catalign.registration.pipeline import FeatureRegistrar
+    from catalign.registration.indexed import IndexedRegistrar
 
     extractor = LearnedExtractor(model_dir)
-    voxel = extractor.voxel_size
-    return FeatureRegistrar(
-        extractor, name="learned", ransac_distance=2 * voxel, icp_distance=voxel, up=up
-    )
+    return IndexedRegistrar(extractor, name="learned", headings=extractor.headings, up=up)
 
 
 METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {

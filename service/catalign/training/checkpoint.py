@@ -1,0 +1,97 @@
+"""Checkpoints: a resumable training state, and the shipped weights with their model card.
+
+The training state (weights, optimizer, step) is saved with ``torch.save`` and read back with
+``weights_only=True`` (tensors and plain data only, no pickled objects). The shipped model is
+``model.safetensors`` plus ``model_card.json``: architecture and training configuration as plain
+data, metrics, and the sha256 of the weights file, which the library index records.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from catalign.atomic import atomic_write_bytes
+from catalign.errors import ConfigError
+from catalign.features.resunet import ResUNet2, build_model
+
+WEIGHTS_FILE = "model.safetensors"
+CARD_FILE = "model_card.json"
+STATE_FILE = "state.pt"
+
+
+def save_state(
+    directory: Path,
+    model: ResUNet2,
+    optimizer: torch.optim.Optimizer,
+    step: int,
+    config: dict[str, Any],
+) -> None:
+    tmp = directory / f".{STATE_FILE}.tmp"
+    directory.mkdir(parents=True, exist_ok=True)
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "step": step,
+            "model_config": model.config,
+            "train_config": config,
+        },
+        tmp,
+    )
+    tmp.replace(directory / STATE_FILE)
+
+
+def load_state(directory: Path) -> dict[str, Any] | None:
+    path = directory / STATE_FILE
+    if not path.is_file():
+        return None
+    return torch.load(path, weights_only=True)
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def export_model(directory: Path, model: ResUNet2, card: dict[str, Any]) -> dict[str, Any]:
+    """Write ``model.safetensors`` and ``model_card.json``; return the card with its sha256."""
+    directory.mkdir(parents=True, exist_ok=True)
+    weights = directory / WEIGHTS_FILE
+    tmp = directory / f".{WEIGHTS_FILE}.tmp"
+    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    save_file(state, str(tmp), metadata={"model_config": json.dumps(model.config)})
+    tmp.replace(weights)
+    card = card | {
+        "architecture": model.config,
+        "weights": WEIGHTS_FILE,
+        "sha256": sha256_of(weights),
+    }
+    atomic_write_bytes(directory / CARD_FILE, json.dumps(card, indent=2).encode())
+    return card
+
+
+def load_model(directory: Path) -> tuple[ResUNet2, dict[str, Any]]:
+    """The shipped model in eval mode and its card; the weights' sha256 must match the card."""
+    card_path, weights = directory / CARD_FILE, directory / WEIGHTS_FILE
+    if not card_path.is_file() or not weights.is_file():
+        raise ConfigError(f"no model in {directory}: expected {CARD_FILE} and {WEIGHTS_FILE}")
+    card = json.loads(card_path.read_text())
+    actual = sha256_of(weights)
+    if card.get("sha256") != actual:
+        raise ConfigError(
+            f"{weights} does not match its model card (sha256 {actual[:12]}..., card says "
+            f"{str(card.get('sha256'))[:12]}...): the weights file is corrupt or was replaced"
+        )
+    model = build_model(**card["architecture"])
+    model.load_state_dict(load_file(str(weights)))
+    model.eval()
+    return model, card

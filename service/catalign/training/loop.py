@@ -1,0 +1,236 @@
+"""The training loop: curriculum over pair kinds, loss, validation, resumable checkpoints.
+
+``train`` reads like the method: load shapes and their EMD neighbours, build the sampler and
+the fixed validation pairs, then for each step draw a batch of pairs (same-instance in stage 1;
+mostly cross-instance in stage 2 of the ``ncc`` curriculum), run the network once, apply the
+loss and step the optimizer. Every ``checkpoint_every`` steps the state is saved, so a killed
+run continues where it stopped; every ``validate_every`` steps MatchAcc and FMR are logged.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from catalign.data.neighbours import shape_neighbours
+from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
+from catalign.errors import ConfigError
+from catalign.features.resunet import build_model
+from catalign.training.batches import pair_features
+from catalign.training.checkpoint import (
+    STATE_FILE,
+    WEIGHTS_FILE,
+    export_model,
+    load_state,
+    save_state,
+)
+from catalign.training.config import TrainConfig
+from catalign.training.loss import contrastive_loss, hardest_contrastive_loss
+from catalign.training.pairs import PairKind, PairSample, PairSampler
+from catalign.training.validation import validate
+
+log = logging.getLogger(__name__)
+LOSSES = {"contrastive": contrastive_loss, "hardest": hardest_contrastive_loss}
+LOG_COLUMNS = (
+    "step",
+    "kind",
+    "loss",
+    "pos",
+    "neg",
+    "pairs_per_s",
+    "elapsed_s",
+    "same_match_acc",
+    "same_fmr",
+    "cross_match_acc",
+    "cross_fmr",
+)
+
+
+def training_shapes(
+    config: TrainConfig, chairs: SharedChairs
+) -> tuple[dict[str, Shape], list[str]]:
+    """Metric training shapes (shared train split plus procedural chairs) and validation ids."""
+    shapes = {i: to_metric(chairs.load(i)) for i in chairs.ids()}
+    shapes |= {s.shape_id: s for s in ProceduralChairs(config.procedural)}
+    return shapes, chairs.ids("val")
+
+
+def pair_kind(config: TrainConfig, step: int, rng: np.random.Generator) -> PairKind:
+    """The curriculum: same-instance first, then cross-instance with a share of same kept."""
+    if config.curriculum == "same-only" or step < config.stage1_steps:
+        return "same"
+    return "same" if rng.random() < config.same_share else "cross"
+
+
+def validation_pairs(
+    sampler: PairSampler, val_ids: list[str], count: int, seed: int
+) -> list[PairSample]:
+    """A fixed set of same- and cross-instance pairs on validation shapes."""
+    pairs = []
+    for k in range(count):
+        rng = np.random.default_rng([seed, 10**6, k])
+        kind: PairKind = "same" if k % 2 == 0 else "cross"
+        pairs.append(sampler.sample(kind, val_ids[(k // 2) % len(val_ids)], rng))
+    return pairs
+
+
+def train(
+    config: TrainConfig, shapes: dict[str, Shape], val_ids: list[str], progress: bool = True
+) -> dict[str, Any]:
+    """Train (or resume) a feature extractor on ``shapes`` less ``val_ids`` (metric shapes in
+    the canonical frame); export the final weights and model card."""
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    train_ids = sorted(set(shapes) - set(val_ids))
+    near = shape_neighbours({i: s.points for i, s in shapes.items()}, train_ids, k=3)
+    sampler = PairSampler(
+        shapes,
+        {i: [n for n, _ in v] for i, v in near.items()},
+        voxel_size=config.voxel_size,
+        tau_ncc=config.tau_ncc,
+        rotation=config.rotation,
+    )
+    val_pairs = validation_pairs(sampler, val_ids, config.validation_pairs, config.seed)
+    taus = {"same": sampler.tau, "cross": sampler.tau_ncc}
+
+    model = build_model(config.model, conv1_kernel_size=config.conv1_kernel_size)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+    start = _resume(config, model, optimizer)
+    if start == 0 and config.init_from is not None:
+        model.load_state_dict(_initial_weights(config.init_from))
+    loss_fn = LOSSES[config.loss]
+    log_path = config.out / "log.csv"
+    started = time.perf_counter()
+    elapsed_before = _elapsed_before(log_path)
+
+    model.train()
+    bar = tqdm(total=config.total_steps, initial=start, desc="train", disable=not progress)
+    metrics: dict[str, float] = {}
+    for step in range(start, config.total_steps):
+        rng = np.random.default_rng([config.seed, step])
+        tick = time.perf_counter()
+        samples = [
+            sampler.sample(pair_kind(config, step, rng), str(rng.choice(train_ids)), rng)
+            for _ in range(config.batch_size)
+        ]
+        generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
+        terms = [
+            loss_fn(
+                fa,
+                fb,
+                torch.from_numpy(s.positives),
+                torch.from_numpy(s.a.aligned).float(),
+                torch.from_numpy(s.b.aligned).float(),
+                s.neg_radius,
+                generator,
+            )
+            for s, (fa, fb) in zip(samples, pair_features(model, samples), strict=True)
+            if len(s.positives)
+        ]
+        if terms:
+            loss = torch.stack([t.loss for t in terms]).mean()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        row = {
+            "step": step + 1,
+            "kind": "+".join(sorted({s.kind for s in samples})),
+            "loss": float(loss.detach()) if terms else float("nan"),
+            "pos": float(np.mean([t.pos_distance for t in terms])) if terms else float("nan"),
+            "neg": float(np.nanmean([t.neg_distance for t in terms])) if terms else float("nan"),
+            "pairs_per_s": len(samples) / (time.perf_counter() - tick),
+            "elapsed_s": elapsed_before + time.perf_counter() - started,
+        }
+        if (step + 1) % config.validate_every == 0 or step + 1 == config.total_steps:
+            metrics = validate(model, val_pairs, taus)
+            row |= metrics
+            log.info("step %d validation %s", step + 1, metrics)
+        _append_csv(log_path, row)
+        bar.set_postfix(
+            loss=f"{row['loss']:.3f}",
+            pos=f"{row['pos']:.2f}",
+            neg=f"{row['neg']:.2f}",
+            pps=f"{row['pairs_per_s']:.1f}",
+        )
+        bar.update()
+        if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.total_steps:
+            save_state(config.out, model, optimizer, step + 1, _plain(config))
+    bar.close()
+
+    if not metrics:
+        metrics = validate(model, val_pairs, taus)
+    card = {
+        "training": _plain(config),
+        "training_data": {
+            "shared_train_chairs": len([i for i in train_ids if not i.startswith("proc-")]),
+            "procedural_chairs": config.procedural,
+            "validation_chairs": len(val_ids),
+        },
+        "training_time_s": round(_elapsed_before(log_path), 1),
+        "validation": metrics,
+        "voxel_size": config.voxel_size,
+    }
+    return export_model(config.out, model, card)
+
+
+def _resume(config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> int:
+    state = load_state(config.out)
+    if state is None:
+        return 0
+    saved = state["train_config"]
+    mine = _plain(config)
+    differs = {k for k in mine if k not in ("out", "threads") and saved.get(k) != mine[k]}
+    if differs:
+        raise ConfigError(
+            f"{config.out} holds a run with other settings ({', '.join(sorted(differs))}); "
+            "use another --out or the same settings to resume"
+        )
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    log.info("resuming %s at step %d", config.out, state["step"])
+    return int(state["step"])
+
+
+def _initial_weights(run: Path) -> dict[str, torch.Tensor]:
+    """Weights of another run: its exported model, or else its latest training state."""
+    state = load_state(run)
+    if state is not None:
+        return state["model"]
+    from safetensors.torch import load_file
+
+    weights = run / WEIGHTS_FILE
+    if not weights.is_file():
+        raise ConfigError(f"--init-from {run}: no {STATE_FILE} or {WEIGHTS_FILE} there")
+    return load_file(str(weights))
+
+
+def _plain(config: TrainConfig) -> dict[str, Any]:
+    return json.loads(config.model_dump_json())
+
+
+def _append_csv(path: Path, row: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new = not path.is_file()
+    with open(path, "a", newline="") as handle:
+        writer = csv.writer(handle)
+        if new:
+            writer.writerow(LOG_COLUMNS)
+        writer.writerow([row.get(k, "") for k in LOG_COLUMNS])
+
+
+def _elapsed_before(path: Path) -> float:
+    """Training seconds already spent, read from the last line of the CSV log."""
+    if not path.is_file():
+        return 0.0
+    lines = path.read_text().strip().splitlines()
+    if len(lines) < 2:
+        return 0.0
+    return float(lines[-1].split(",")[LOG_COLUMNS.index("elapsed_s")])
