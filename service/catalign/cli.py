@@ -14,8 +14,10 @@ from typing import Annotated
 import typer
 
 from catalign.errors import CatalignError
+from catalign.library.cli import app as library_app
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+app.add_typer(library_app, name="library")
 
 
 @app.callback()

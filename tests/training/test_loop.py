@@ -81,23 +81,24 @@ def _log_steps(run: Path) -> list[int]:
 def test_interrupted_training_resumes_and_exports_a_loadable_model(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("CATALIGN_CACHE_DIR", str(tmp_path / "cache"))
     shapes = {s.shape_id: s for s in (procedural_shape(k) for k in (2, 3, 11, 20))}
-    config = _config(tmp_path / "run")
+    config = _config(tmp_path / "run", checkpoint_every=2, validate_every=4)
 
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    with monkeypatch.context() as patch:  # killed during the first validation, at step 2
+    with monkeypatch.context() as patch:  # killed in the validation of step 4
         patch.setattr("catalign.training.loop.validate", interrupt)
         with pytest.raises(KeyboardInterrupt):
             train(config, shapes, val_ids=["proc-0020"], progress=False)
-    assert _log_steps(config.out) == [1]
+    assert _log_steps(config.out) == [1, 2, 3]  # step 3 ran after the last checkpoint
     assert not (config.out / WEIGHTS_FILE).exists()
 
     with pytest.raises(ConfigError, match="other settings"):
-        train(_config(config.out, stage2_steps=3), shapes, val_ids=["proc-0020"], progress=False)
+        other = _config(config.out, checkpoint_every=2, validate_every=4, stage2_steps=3)
+        train(other, shapes, val_ids=["proc-0020"], progress=False)
 
     card = train(config, shapes, val_ids=["proc-0020"], progress=False)
-    assert _log_steps(config.out) == [1, 2, 3, 4]  # continued from step 1's checkpoint
+    assert _log_steps(config.out) == [1, 2, 3, 4]  # from step 2's checkpoint, step 3 once
     assert set(card["validation"]) == {"same_match_acc", "same_fmr", "cross_match_acc", "cross_fmr"}
     model, loaded_card = load_model(config.out)
     assert not model.training

@@ -108,6 +108,7 @@ def train(
         model.load_state_dict(_initial_weights(config.init_from))
     loss_fn = LOSSES[config.loss]
     log_path = config.out / "log.csv"
+    _truncate_log(log_path, start)
     started = time.perf_counter()
     elapsed_before = _elapsed_before(log_path)
 
@@ -224,6 +225,15 @@ def _append_csv(path: Path, row: dict[str, Any]) -> None:
         if new:
             writer.writerow(LOG_COLUMNS)
         writer.writerow([row.get(k, "") for k in LOG_COLUMNS])
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Drop log rows after ``step``: a resumed run repeats the steps its checkpoint missed."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines()
+    kept = [lines[0]] + [line for line in lines[1:] if int(line.split(",")[0]) <= step]
+    path.write_text("\n".join(kept) + "\n")
 
 
 def _elapsed_before(path: Path) -> float:

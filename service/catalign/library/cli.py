@@ -1,0 +1,138 @@
+"""``catalign library ...``: build, extend, prune and inspect CAD library indexes.
+
+Every command takes ``--model-dir`` (the feature extractor's weights, default ``model_store/``)
+where features are computed; an error the library detects prints one sentence, exit code 2.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from catalign.errors import CatalignError
+
+app = typer.Typer(
+    no_args_is_help=True,
+    add_completion=False,
+    help="Build, extend, prune and inspect CAD libraries.",
+)
+
+ModelDir = Annotated[Path | None, typer.Option(help="Extractor weights (default: model_store/).")]
+Units = Annotated[str, typer.Option(help="Units of the source coordinates: m, cm or mm.")]
+
+
+def _extractor(model_dir: Path | None):
+    from catalign.features.extractor import LearnedExtractor
+
+    return LearnedExtractor(model_dir)
+
+
+def _fail(error: CatalignError) -> typer.Exit:
+    typer.echo(f"error: {error}", err=True)
+    return typer.Exit(code=2)
+
+
+@app.command()
+def build(
+    sources: Annotated[list[Path], typer.Argument(help="Shape files and folders.")],
+    out: Annotated[Path, typer.Option(help="Library folder to create.")],
+    units: Units = "m",
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing library.")] = False,
+    model_dir: ModelDir = None,
+) -> None:
+    """Build a library from meshes and point clouds (model id = file stem)."""
+    from catalign.library.index import build as build_index
+
+    try:
+        manifest = build_index(
+            sources, out, _extractor(model_dir), units=units, overwrite=overwrite
+        )
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo(f"built {out}: {len(manifest.entries)} models")
+
+
+@app.command()
+def procedural(
+    out: Annotated[Path, typer.Option(help="Library folder to create.")],
+    count: Annotated[int, typer.Option(min=1, help="Number of procedural chairs.")] = 60,
+    first_seed: Annotated[int, typer.Option(min=0, help="Seed of the first chair.")] = 0,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing library.")] = False,
+    model_dir: ModelDir = None,
+) -> None:
+    """Build a library of procedural chairs (the shipped default library)."""
+    from catalign.library.index import build_procedural
+
+    try:
+        manifest = build_procedural(
+            out, _extractor(model_dir), count, first_seed, overwrite=overwrite
+        )
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo(f"built {out}: {len(manifest.entries)} procedural chairs")
+
+
+@app.command()
+def add(
+    library: Annotated[Path, typer.Argument(help="Library folder.")],
+    sources: Annotated[list[Path], typer.Argument(help="Shape files and folders to add.")],
+    units: Units = "m",
+    replace: Annotated[bool, typer.Option(help="Replace entries whose id exists.")] = False,
+    model_dir: ModelDir = None,
+) -> None:
+    """Add models to a library without rebuilding it."""
+    from catalign.library.index import add as add_entries
+
+    try:
+        manifest = add_entries(
+            library, sources, _extractor(model_dir), units=units, replace=replace
+        )
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo(f"{library}: {len(manifest.entries)} models")
+
+
+@app.command()
+def remove(
+    library: Annotated[Path, typer.Argument(help="Library folder.")],
+    ids: Annotated[list[str], typer.Argument(help="Model ids to remove.")],
+) -> None:
+    """Remove models from a library."""
+    from catalign.library.index import remove as remove_entries
+
+    try:
+        manifest = remove_entries(library, ids)
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo(f"{library}: {len(manifest.entries)} models")
+
+
+@app.command("list")
+def list_command(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> None:
+    """Print the model ids, one per line."""
+    from catalign.library.index import list_models
+
+    try:
+        ids = list_models(library)
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo("\n".join(ids))
+
+
+@app.command()
+def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> None:
+    """Print the manifest summary: format, extractor, dates, size."""
+    from catalign.library.index import info as read_info
+
+    try:
+        manifest = read_info(library)
+    except CatalignError as error:
+        raise _fail(error) from None
+    typer.echo(
+        f"library: {library}\nformat: {manifest.format_version}\n"
+        f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"
+        f"created: {manifest.created}\nupdated: {manifest.updated}\n"
+        f"models: {len(manifest.entries)}"
+    )
