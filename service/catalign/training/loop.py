@@ -26,6 +26,7 @@ from catalign.errors import ConfigError
 from catalign.features.resunet import build_model
 from catalign.training.batches import pair_features
 from catalign.training.checkpoint import (
+    CARD_FILE,
     STATE_FILE,
     WEIGHTS_FILE,
     export_model,
@@ -175,10 +176,12 @@ def train(
             "procedural_chairs": config.procedural,
             "validation_chairs": len(val_ids),
         },
-        "training_time_s": round(_elapsed_before(log_path), 1),
+        "training_time_s": round(_elapsed_before(log_path) + _init_time(config.init_from), 1),
         "validation": metrics,
         "voxel_size": config.voxel_size,
     }
+    if config.init_from is not None:
+        card["initialised_from"] = _init_card(config.init_from)
     return export_model(config.out, model, card)
 
 
@@ -211,6 +214,16 @@ def _initial_weights(run: Path) -> dict[str, torch.Tensor]:
     if not weights.is_file():
         raise ConfigError(f"--init-from {run}: no {STATE_FILE} or {WEIGHTS_FILE} there")
     return load_file(str(weights))
+
+
+def _init_card(run: Path) -> dict[str, Any]:
+    """The model card of the run this one started from (its training counts in the total)."""
+    path = run / CARD_FILE
+    return json.loads(path.read_text()) if path.is_file() else {"run": str(run)}
+
+
+def _init_time(run: Path | None) -> float:
+    return float(_init_card(run).get("training_time_s", 0.0)) if run is not None else 0.0
 
 
 def _plain(config: TrainConfig) -> dict[str, Any]:
