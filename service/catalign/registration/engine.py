@@ -8,9 +8,11 @@
    45 degrees apart; any other model at one);
 3. **shortlist**: the ``top_k`` library entries by global-descriptor similarity and size;
 4. **match + RANSAC**, per candidate and heading: mutual nearest neighbours in feature space,
-   then the vectorised RANSAC (with the up prior when ``up`` is given); the heading with the most
-   inliers is kept;
-5. **ICP**: point-to-plane refinement of the query onto the candidate's surface;
+   then the vectorised RANSAC (with the up prior when ``up`` is given); the ``keep_headings``
+   headings with the most inliers are kept (partial views of chairs are often nearly symmetric
+   front to back, and inlier counts alone confuse the two);
+5. **ICP**: point-to-plane refinement of the query onto the candidate's surface, per kept
+   hypothesis;
 6. **score**: the share of query points the posed model explains, discounted by the RMSE; the
    best candidate wins.
 """
@@ -73,7 +75,8 @@ class Engine:
     Parameters: ``headings`` (1, or 8 for ``yaw-bin`` models), ``top_k`` default shortlist size
     (None: every entry), ``ransac_factor`` and ``icp_factor`` (inlier distances in voxels),
     ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up``), ``min_points``
-    (occupied voxels a query needs).
+    (occupied voxels a query needs), ``keep_headings`` (hypotheses per candidate refined by
+    ICP).
     """
 
     def __init__(
@@ -87,6 +90,7 @@ class Engine:
         icp_factor: float = 1.0,
         up_tolerance_deg: float = 30.0,
         min_points: int = 50,
+        keep_headings: int = 2,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -96,6 +100,7 @@ class Engine:
         self.icp_distance = icp_factor * extractor.voxel_size
         self.up_tolerance_deg = up_tolerance_deg
         self.min_points = min_points
+        self.keep_headings = keep_headings
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
 
     def register(
@@ -124,8 +129,9 @@ class Engine:
 
         with _timed(timings, "match_ransac"):
             hypotheses = [
-                self._best_hypothesis(model_id, views, up, estimate_scale, seed)
+                hypothesis
                 for model_id in candidates
+                for hypothesis in self._hypotheses(model_id, views, up, estimate_scale, seed)
             ]
 
         with _timed(timings, "icp_score"):
@@ -139,9 +145,7 @@ class Engine:
             inlier_rmse=float(refined.inlier_rmse),
             num_inliers=num_inliers,
             inlier_ratio=num_inliers / len(views[0].keypoints),
-            candidates=sorted(
-                (Candidate(h.model_id, s) for h, s, _, _ in scored), key=lambda c: -c.score
-            ),
+            candidates=_best_per_model(scored),
             timings_ms=timings,
             correspondences=(
                 hypothesis.view.keypoints[hypothesis.matches[:, 0]],
@@ -171,16 +175,17 @@ class Engine:
         )
         return [ids[i] for i in np.argsort(-scores, kind="stable")[:k]]
 
-    def _best_hypothesis(
+    def _hypotheses(
         self,
         model_id: str,
         views: list[QueryView],
         up: np.ndarray | None,
         estimate_scale: bool,
         seed: int,
-    ) -> Hypothesis:
+    ) -> list[Hypothesis]:
+        """The ``keep_headings`` best RANSAC hypotheses of one candidate, one per heading."""
         entry = self.library[model_id]
-        best: Hypothesis | None = None
+        found = []
         for view in views:
             matches = mutual_nearest(view.features, entry.features)
             result = ransac(
@@ -192,10 +197,8 @@ class Engine:
                 up_tolerance_deg=self.up_tolerance_deg,
                 estimate_scale=estimate_scale,
             )
-            if best is None or result.num_inliers > best.num_inliers:
-                best = Hypothesis(model_id, result.transform, matches, view, result.num_inliers)
-        assert best is not None
-        return best
+            found.append(Hypothesis(model_id, result.transform, matches, view, result.num_inliers))
+        return sorted(found, key=lambda h: -h.num_inliers)[: self.keep_headings]
 
     def _refine(
         self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud
@@ -229,6 +232,14 @@ class Engine:
         scaled = o3d.geometry.PointCloud(surface)
         scaled.scale(scale, center=np.zeros(3))
         return scaled
+
+
+def _best_per_model(scored: list[tuple[Hypothesis, float, object, np.ndarray]]) -> list[Candidate]:
+    """Each candidate model once, with its best score, best first."""
+    best: dict[str, float] = {}
+    for hypothesis, score, _, _ in scored:
+        best[hypothesis.model_id] = max(score, best.get(hypothesis.model_id, -np.inf))
+    return sorted((Candidate(i, s) for i, s in best.items()), key=lambda c: -c.score)
 
 
 @contextmanager
