@@ -1,0 +1,107 @@
+"""Query latency of the engine against procedural libraries of growing size, FPFH alongside.
+
+A 20k-point partial view of a procedural chair that is not in the library is registered against
+libraries of 10, 50, 200 and 1000 procedural chairs (built once with the shipped weights and
+cached under ``--cache``), with the engine's default shortlist; the FPFH baseline (Open3D's
+recipe, every model tried) runs in the same process on the small libraries, where it finishes.
+Prints a markdown table and writes it to ``bench/results/latency.md``.
+
+    .venv/bin/python bench/latency.py [--sizes 10 50 200 1000] [--runs 5] [--top-k 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from catalign.data.shapes import procedural_shape
+from catalign.data.views import WORLD_UP, camera_at, random_object_pose, render_view
+from catalign.features.extractor import LearnedExtractor
+from catalign.geometry.sampling import subsample
+from catalign.library.index import build_procedural, load
+from catalign.registration.base import LibraryShape
+from catalign.registration.engine import Engine
+from catalign.registration.methods import build_registrar
+
+RESULTS = Path(__file__).parent / "results" / "latency.md"
+
+
+def query_cloud(seed: int = 5000, count: int = 20_000) -> np.ndarray:
+    """A noisy 640x480 view of a chair outside every library, cut to ``count`` points."""
+    rng = np.random.default_rng(seed)
+    shape = procedural_shape(seed)
+    pose = random_object_pose(rng, "upright", height=shape.height / 2)
+    camera = camera_at(pose[:3, 3], 1.6, 25.0, 40.0, width=640, height=480)
+    return subsample(render_view(shape, pose, camera, rng), count, rng)
+
+
+def timed(call, runs: int) -> list[float]:
+    call()  # warm-up: caches, allocator, lazy imports
+    out = []
+    for _ in range(runs):
+        started = time.perf_counter()
+        call()
+        out.append((time.perf_counter() - started) * 1e3)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 200, 1000])
+    parser.add_argument("--fpfh-sizes", type=int, nargs="+", default=[10, 50])
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--top-k", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--cache", type=Path, default=Path(".cache/bench-libraries"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    extractor = LearnedExtractor()
+    points = query_cloud()
+    rows = []
+    for size in args.sizes:
+        folder = args.cache / f"{extractor.fingerprint[:12]}-{size}"
+        if not (folder / "manifest.json").is_file():
+            build_procedural(folder, extractor, size, first_seed=0, overwrite=True)
+        library = load(folder, extractor.fingerprint)
+        engine = Engine(extractor, library, headings=extractor.headings, top_k=args.top_k)
+        ms = timed(lambda e=engine: e.register(points, up=WORLD_UP, seed=0), args.runs)
+        rows.append(("learned engine", size, ms))
+        if size in args.fpfh_sizes:
+            fpfh = build_registrar("fpfh")
+            fpfh.prepare([LibraryShape(e.model_id, e.points) for e in library])
+            ms = timed(lambda f=fpfh: f.register(points, seed=0), max(1, args.runs // 2))
+            rows.append(("FPFH baseline", size, ms))
+
+    lines = [
+        "# Query latency (20k-point query)",
+        "",
+        f"{platform.machine()}, {torch.get_num_threads()} torch threads, top_k={args.top_k}, "
+        f"headings={extractor.headings}, {args.runs} timed runs after one warm-up "
+        f"(FPFH: {max(1, args.runs // 2)}); load average {_load()}.",
+        "",
+        "| method | library size | median ms | p95 ms |",
+        "|---|---|---|---|",
+    ]
+    for method, size, ms in rows:
+        lines.append(f"| {method} | {size} | {np.median(ms):.0f} | {np.percentile(ms, 95):.0f} |")
+    table = "\n".join(lines) + "\n"
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(table)
+    print(table)
+
+
+def _load() -> str:
+    try:
+        return Path("/proc/loadavg").read_text().split()[0]
+    except OSError:
+        return "unknown"
+
+
+if __name__ == "__main__":
+    main()

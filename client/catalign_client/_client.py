@@ -1,0 +1,457 @@
+"""The synchronous and asynchronous clients, sharing everything that does no I/O.
+
+A robot's control loop is usually synchronous, a fleet gateway usually asyncio, and both must
+behave identically: same validation, same encoding, same retries, same errors. So
+:class:`_BaseClient` builds every request as plain data (:class:`Request`), decides whether and
+how long to wait before a retry, and parses every answer; :class:`Client` and
+:class:`AsyncClient` only send requests and sleep, each in its own way. Retries cover what is
+transient (no connection, a timeout, 503 busy); a 4xx is the caller's to fix and never retried.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Self
+from urllib.parse import quote
+
+import httpx
+
+from ._exceptions import DecodingError, TransportError, error_from_response, retry_after_seconds
+from ._models import AlignResult, ModelInfo, parse_models, parse_removed_count
+from ._points import PointsLike, as_points, encode_binary, encode_json
+from ._requests import Encoding, Request, UpLike, query, registration_options, upload
+from ._version import __version__
+
+logger = logging.getLogger("catalign_client")
+
+MAX_RETRY_DELAY = 10.0
+"""Longest wait between two attempts in seconds, whatever ``Retry-After`` asks for."""
+
+# Errors raised before any byte of the request reached the server: safe to resend anything.
+_NOT_SENT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
+
+# Indirections so tests can make back-off instant.
+_sleep = time.sleep
+_async_sleep = asyncio.sleep
+
+
+class _BaseClient:
+    """Options, request building, retry policy and answer parsing; no I/O."""
+
+    def __init__(
+        self,
+        base_url: str,
+        *,
+        api_key: str | None,
+        retries: int,
+        backoff: float,
+    ) -> None:
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+            raise ValueError(f"retries must be a non-negative integer, got {retries!r}")
+        if not math.isfinite(backoff) or backoff < 0:
+            raise ValueError(f"backoff must be a non-negative number of seconds, got {backoff!r}")
+        self._base_url = base_url
+        self._api_key = api_key
+        self._retries = retries
+        self._backoff = float(backoff)
+
+    @property
+    def base_url(self) -> str:
+        return self._base_url
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(base_url={self._base_url!r})"
+
+    def _headers(self) -> dict[str, str]:
+        headers = {"User-Agent": f"catalign-client/{__version__}", "Accept": "application/json"}
+        if self._api_key is not None:
+            headers["X-API-Key"] = self._api_key
+        return headers
+
+    # Requests -----------------------------------------------------------------------------------
+
+    def _align_request(
+        self,
+        points: PointsLike,
+        *,
+        top_k: int | None,
+        up: UpLike | None,
+        estimate_scale: bool,
+        seed: int | None,
+        encoding: Encoding,
+    ) -> Request:
+        cloud = as_points(points)
+        options = registration_options(top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed)
+        if encoding == "binary":
+            return Request(
+                "POST",
+                "/register",
+                params=query(options),
+                content=encode_binary(cloud),
+                headers={"Content-Type": "application/octet-stream"},
+            )
+        if encoding == "json":
+            return Request("POST", "/register", json={"points": encode_json(cloud), **options})
+        raise ValueError(f"encoding must be 'binary' or 'json', got {encoding!r}")
+
+    def _align_file_request(
+        self,
+        path: str | Path,
+        *,
+        top_k: int | None,
+        up: UpLike | None,
+        estimate_scale: bool,
+        seed: int | None,
+    ) -> Request:
+        options = registration_options(top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed)
+        return Request("POST", "/register", params=query(options), files=upload(path))
+
+    def _add_model_request(
+        self, path: str | Path, *, model_id: str | None, units: str | None
+    ) -> Request:
+        fields = {"model_id": model_id, "units": units}
+        data = {name: value for name, value in fields.items() if value is not None}
+        return Request("POST", "/models", files=upload(path), data=data or None, idempotent=False)
+
+    @staticmethod
+    def _model_path(model_id: str) -> str:
+        if not isinstance(model_id, str) or not model_id:
+            raise ValueError(f"model_id must be a non-empty string, got {model_id!r}")
+        return "/models/" + quote(model_id, safe="")
+
+    # Retries ------------------------------------------------------------------------------------
+
+    def _retry_delay(
+        self,
+        request: Request,
+        attempt: int,
+        *,
+        response: httpx.Response | None = None,
+        error: httpx.TransportError | None = None,
+    ) -> float | None:
+        """Seconds to wait before resending after ``attempt`` (0-based), or ``None``: do not."""
+        if not request.retry or attempt >= self._retries:
+            return None
+        hint: float | None = None
+        if error is not None:
+            if not (request.idempotent or isinstance(error, _NOT_SENT)):
+                return None
+            reason = f"{type(error).__name__}: {error}"
+        elif response is not None and response.status_code == 503:
+            hint = retry_after_seconds(response)
+            reason = "503 service unavailable"
+        else:
+            return None
+        delay = min(hint if hint is not None else self._backoff * 2**attempt, MAX_RETRY_DELAY)
+        logger.info(
+            "%s %s: %s; retry %d of %d in %.2f s",
+            request.method,
+            request.path,
+            reason,
+            attempt + 1,
+            self._retries,
+            delay,
+        )
+        return delay
+
+    def _transport_error(
+        self, request: Request, error: httpx.TransportError, attempts: int
+    ) -> TransportError:
+        return TransportError(
+            f"{request.method} {self._base_url.rstrip('/')}{request.path} failed after "
+            f"{attempts} attempt(s): {type(error).__name__}: {str(error) or 'no detail'}"
+        )
+
+    # Answers ------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _json(response: httpx.Response) -> Any:
+        """The decoded body of a success answer; the typed error of any other."""
+        if not response.is_success:
+            raise error_from_response(response)
+        try:
+            return response.json()
+        except ValueError as exc:
+            raise DecodingError(
+                f"{response.request.method} {response.request.url.path}: answer is not JSON "
+                f"({response.headers.get('content-type', 'no content type')})"
+            ) from exc
+
+    @classmethod
+    def _ready(cls, response: httpx.Response) -> bool:
+        """``True`` when ready, ``False`` on 503 (starting or busy); other errors raise."""
+        if response.status_code == 503:
+            return False
+        body = cls._json(response)
+        return isinstance(body, Mapping) and body.get("status") == "ready"
+
+    @classmethod
+    def _info(cls, response: httpx.Response) -> dict[str, Any]:
+        body = cls._json(response)
+        if not isinstance(body, dict):
+            raise DecodingError(f"GET /info: expected a JSON object, got {type(body).__name__}")
+        return body
+
+
+class Client(_BaseClient):
+    """A synchronous client of the catalign registration service.
+
+    Usage::
+
+        with Client("http://localhost:8000", api_key="secret") as client:
+            result = client.align(points, up=(0, 0, 1), seed=0)
+            print(result.model_id, result.fitness)
+            pose = result.pose  # numpy (4, 4): x_obs = R @ x_model + t
+
+    Parameters:
+        base_url: the server's root URL, e.g. ``"http://10.0.0.5:8000"``.
+        api_key: sent as the ``X-API-Key`` header when given.
+        timeout: seconds per request (or an :class:`httpx.Timeout`); ``None`` waits forever.
+        retries: how many times to resend after a connection error, a timeout or a 503.
+        backoff: first wait in seconds; it doubles per retry, a ``Retry-After`` header replaces
+            it, and no wait exceeds ``MAX_RETRY_DELAY`` (10 s).
+        transport: an :class:`httpx.BaseTransport`, e.g. :class:`httpx.MockTransport` in tests.
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        *,
+        api_key: str | None = None,
+        timeout: float | httpx.Timeout | None = 30.0,
+        retries: int = 2,
+        backoff: float = 0.2,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key=api_key, retries=retries, backoff=backoff)
+        self._http = httpx.Client(
+            base_url=base_url, headers=self._headers(), timeout=timeout, transport=transport
+        )
+
+    def align(
+        self,
+        points: PointsLike,
+        *,
+        top_k: int | None = None,
+        up: UpLike | None = None,
+        estimate_scale: bool = False,
+        seed: int | None = None,
+        encoding: Encoding = "binary",
+    ) -> AlignResult:
+        """Find the library model that best explains ``points`` and its pose.
+
+        ``points``: an (N, 3) array-like, nested lists, or an object with ``.points`` (Open3D)
+        or ``.vertices`` (trimesh). ``top_k``: how many shortlisted models to register (server
+        default when ``None``). ``up``: the observation's up direction, e.g. ``(0, 0, 1)``.
+        ``estimate_scale``: also fit a uniform scale. ``seed``: for a reproducible answer.
+        ``encoding``: ``"binary"`` (float32, compact) or ``"json"``.
+        """
+        request = self._align_request(
+            points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
+        )
+        return AlignResult.from_json(self._call(request))
+
+    def align_file(
+        self,
+        path: str | Path,
+        *,
+        top_k: int | None = None,
+        up: UpLike | None = None,
+        estimate_scale: bool = False,
+        seed: int | None = None,
+    ) -> AlignResult:
+        """Like :meth:`align`, uploading a ``.ply/.pcd/.npy/.xyz`` file for the server to read."""
+        request = self._align_file_request(
+            path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
+        )
+        return AlignResult.from_json(self._call(request))
+
+    def models(self) -> list[ModelInfo]:
+        """Every model of the server's library."""
+        return parse_models(self._call(Request("GET", "/models")))
+
+    def model(self, model_id: str) -> ModelInfo:
+        """One library model; :class:`NotFoundError` when there is none with that id."""
+        return ModelInfo.from_json(self._call(Request("GET", self._model_path(model_id))))
+
+    def add_model(
+        self, path: str | Path, *, model_id: str | None = None, units: str | None = None
+    ) -> ModelInfo:
+        """Upload a CAD file (mesh or point cloud) into the library; the id defaults to its stem."""
+        request = self._add_model_request(path, model_id=model_id, units=units)
+        return ModelInfo.from_json(self._call(request))
+
+    def remove_model(self, model_id: str) -> int:
+        """Remove a model from the library; returns how many models remain."""
+        request = Request("DELETE", self._model_path(model_id), idempotent=False)
+        return parse_removed_count(self._call(request))
+
+    def health(self) -> bool:
+        """Whether the server is ready to register (no retries: it answers for now)."""
+        return self._ready(self._send(Request("GET", "/health/ready", retry=False)))
+
+    def info(self) -> dict[str, Any]:
+        """What the server says about itself (versions, library, settings)."""
+        return self._info(self._send(Request("GET", "/info")))
+
+    def close(self) -> None:
+        """Close the connection pool."""
+        self._http.close()
+
+    @property
+    def is_closed(self) -> bool:
+        return self._http.is_closed
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _call(self, request: Request) -> Any:
+        return self._json(self._send(request))
+
+    def _send(self, request: Request) -> httpx.Response:
+        attempt = 0
+        while True:
+            try:
+                response = self._http.request(request.method, request.path, **request.arguments())
+            except httpx.TransportError as exc:
+                delay = self._retry_delay(request, attempt, error=exc)
+                if delay is None:
+                    raise self._transport_error(request, exc, attempt + 1) from exc
+            else:
+                delay = self._retry_delay(request, attempt, response=response)
+                if delay is None:
+                    return response
+            _sleep(delay)
+            attempt += 1
+
+
+class AsyncClient(_BaseClient):
+    """An asyncio client of the catalign registration service, mirroring :class:`Client`.
+
+    Usage::
+
+        async with AsyncClient("http://localhost:8000") as client:
+            result = await client.align(points, seed=0)
+            pose = result.pose
+
+    Parameters:
+        base_url, api_key, timeout, retries, backoff: as for :class:`Client`.
+        transport: an :class:`httpx.AsyncBaseTransport`, e.g. :class:`httpx.MockTransport`.
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        *,
+        api_key: str | None = None,
+        timeout: float | httpx.Timeout | None = 30.0,
+        retries: int = 2,
+        backoff: float = 0.2,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        super().__init__(base_url, api_key=api_key, retries=retries, backoff=backoff)
+        self._http = httpx.AsyncClient(
+            base_url=base_url, headers=self._headers(), timeout=timeout, transport=transport
+        )
+
+    async def align(
+        self,
+        points: PointsLike,
+        *,
+        top_k: int | None = None,
+        up: UpLike | None = None,
+        estimate_scale: bool = False,
+        seed: int | None = None,
+        encoding: Encoding = "binary",
+    ) -> AlignResult:
+        """See :meth:`Client.align`."""
+        request = self._align_request(
+            points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
+        )
+        return AlignResult.from_json(await self._call(request))
+
+    async def align_file(
+        self,
+        path: str | Path,
+        *,
+        top_k: int | None = None,
+        up: UpLike | None = None,
+        estimate_scale: bool = False,
+        seed: int | None = None,
+    ) -> AlignResult:
+        """See :meth:`Client.align_file`."""
+        request = self._align_file_request(
+            path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
+        )
+        return AlignResult.from_json(await self._call(request))
+
+    async def models(self) -> list[ModelInfo]:
+        """See :meth:`Client.models`."""
+        return parse_models(await self._call(Request("GET", "/models")))
+
+    async def model(self, model_id: str) -> ModelInfo:
+        """See :meth:`Client.model`."""
+        return ModelInfo.from_json(await self._call(Request("GET", self._model_path(model_id))))
+
+    async def add_model(
+        self, path: str | Path, *, model_id: str | None = None, units: str | None = None
+    ) -> ModelInfo:
+        """See :meth:`Client.add_model`."""
+        request = self._add_model_request(path, model_id=model_id, units=units)
+        return ModelInfo.from_json(await self._call(request))
+
+    async def remove_model(self, model_id: str) -> int:
+        """See :meth:`Client.remove_model`."""
+        request = Request("DELETE", self._model_path(model_id), idempotent=False)
+        return parse_removed_count(await self._call(request))
+
+    async def health(self) -> bool:
+        """See :meth:`Client.health`."""
+        return self._ready(await self._send(Request("GET", "/health/ready", retry=False)))
+
+    async def info(self) -> dict[str, Any]:
+        """See :meth:`Client.info`."""
+        return self._info(await self._send(Request("GET", "/info")))
+
+    async def aclose(self) -> None:
+        """Close the connection pool."""
+        await self._http.aclose()
+
+    @property
+    def is_closed(self) -> bool:
+        return self._http.is_closed
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    async def _call(self, request: Request) -> Any:
+        return self._json(await self._send(request))
+
+    async def _send(self, request: Request) -> httpx.Response:
+        attempt = 0
+        while True:
+            try:
+                response = await self._http.request(
+                    request.method, request.path, **request.arguments()
+                )
+            except httpx.TransportError as exc:
+                delay = self._retry_delay(request, attempt, error=exc)
+                if delay is None:
+                    raise self._transport_error(request, exc, attempt + 1) from exc
+            else:
+                delay = self._retry_delay(request, attempt, response=response)
+                if delay is None:
+                    return response
+            await _async_sleep(delay)
+            attempt += 1

@@ -1,0 +1,217 @@
+"""Typed results of the service's answers, parsed from JSON once at the edge.
+
+Callers should get a numpy pose and attribute access they can rely on, not dictionaries whose
+keys drift; parsing lives next to the types so a contract change touches one module. Unknown
+extra keys are ignored (a newer server stays compatible), missing or mistyped ones raise
+:class:`DecodingError`, since a pose built from a half-understood answer would move a robot arm to
+the wrong place.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ._exceptions import DecodingError
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """One library model the server tried, with its score (higher is better)."""
+
+    model_id: str
+    score: float
+
+
+@dataclass(frozen=True, eq=False)
+class AlignResult:
+    """The best library model for a query cloud, its pose and inlier statistics.
+
+    ``pose`` is a read-only 4x4 float64 matrix mapping model coordinates (of the library entry's
+    source file) into the observation: ``x_obs = pose[:3, :3] @ x_model + pose[:3, 3]``. With
+    ``estimate_scale`` the upper-left block is ``scale * rotation``.
+
+    Usage::
+
+        result = client.align(points)
+        model_in_camera = model_points @ result.pose[:3, :3].T + result.translation
+    """
+
+    model_id: str
+    pose: np.ndarray = field(repr=False)
+    scale: float
+    fitness: float
+    inlier_rmse: float
+    num_inliers: int
+    inlier_ratio: float
+    candidates: list[Candidate]
+    timings_ms: dict[str, float] = field(repr=False)
+    request_id: str
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The 3x3 rotation, with any estimated scale divided out."""
+        return self.pose[:3, :3] / self.scale
+
+    @property
+    def translation(self) -> np.ndarray:
+        """The (3,) translation of the model origin in the observation frame."""
+        return self.pose[:3, 3].copy()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready data, the pose as nested lists (the wire format)."""
+        return {
+            "model_id": self.model_id,
+            "pose": self.pose.tolist(),
+            "scale": self.scale,
+            "fitness": self.fitness,
+            "inlier_rmse": self.inlier_rmse,
+            "num_inliers": self.num_inliers,
+            "inlier_ratio": self.inlier_ratio,
+            "candidates": [{"model_id": c.model_id, "score": c.score} for c in self.candidates],
+            "timings_ms": dict(self.timings_ms),
+            "request_id": self.request_id,
+        }
+
+    @classmethod
+    def from_json(cls, data: Any) -> AlignResult:
+        """Parse the body of a ``POST /register`` answer."""
+        body = _mapping(data, "register answer")
+        pose = _pose(body.get("pose"))
+        candidates = [
+            Candidate(model_id=_str(item, "model_id"), score=_float(item, "score"))
+            for item in _list(body, "candidates")
+        ]
+        timings = _mapping(body.get("timings_ms", {}), "timings_ms")
+        return cls(
+            model_id=_str(body, "model_id"),
+            pose=pose,
+            scale=_float(body, "scale") if "scale" in body else 1.0,
+            fitness=_float(body, "fitness"),
+            inlier_rmse=_float(body, "inlier_rmse"),
+            num_inliers=_int(body, "num_inliers"),
+            inlier_ratio=_float(body, "inlier_ratio"),
+            candidates=candidates,
+            timings_ms={str(k): _float(timings, k) for k in timings},
+            request_id=str(body.get("request_id") or ""),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ModelInfo:
+    """One CAD model of the server's library.
+
+    Parameters:
+        model_id: the library id (the file stem unless given at upload).
+        source: the file the entry was built from.
+        units: the length unit of the model's coordinates, e.g. ``"m"``.
+        num_points: how many surface points the library keeps for it.
+        bbox_min, bbox_max, size: its axis-aligned bounding box, in ``units``.
+    """
+
+    model_id: str
+    source: str
+    units: str
+    num_points: int
+    bbox_min: tuple[float, float, float]
+    bbox_max: tuple[float, float, float]
+    size: tuple[float, float, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready data, as the server sent it."""
+        return {
+            "model_id": self.model_id,
+            "source": self.source,
+            "units": self.units,
+            "num_points": self.num_points,
+            "bbox_min": list(self.bbox_min),
+            "bbox_max": list(self.bbox_max),
+            "size": list(self.size),
+        }
+
+    @classmethod
+    def from_json(cls, data: Any) -> ModelInfo:
+        """Parse one model object of ``GET /models`` or ``GET /models/{id}``."""
+        body = _mapping(data, "model")
+        return cls(
+            model_id=_str(body, "model_id"),
+            source=str(body.get("source") or ""),
+            units=str(body.get("units") or ""),
+            num_points=_int(body, "num_points"),
+            bbox_min=_vec3(body, "bbox_min"),
+            bbox_max=_vec3(body, "bbox_max"),
+            size=_vec3(body, "size"),
+        )
+
+
+def parse_models(data: Any) -> list[ModelInfo]:
+    """Parse the body of ``GET /models``."""
+    return [ModelInfo.from_json(item) for item in _list(_mapping(data, "models answer"), "models")]
+
+
+def parse_removed_count(data: Any) -> int:
+    """The number of models left, from the body of ``DELETE /models/{id}``."""
+    return _int(_mapping(data, "remove answer"), "count")
+
+
+def _mapping(value: Any, what: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise DecodingError(f"expected a JSON object for {what}, got {type(value).__name__}")
+    return value
+
+
+def _get(body: Mapping[str, Any], key: str) -> Any:
+    if key not in body:
+        raise DecodingError(f"answer lacks {key!r}")
+    return body[key]
+
+
+def _str(body: Any, key: str) -> str:
+    value = _get(_mapping(body, key), key)
+    if not isinstance(value, str):
+        raise DecodingError(f"{key!r} is not a string: {value!r}")
+    return value
+
+
+def _float(body: Any, key: str) -> float:
+    value = _get(_mapping(body, key), key)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise DecodingError(f"{key!r} is not a number: {value!r}")
+    return float(value)
+
+
+def _int(body: Any, key: str) -> int:
+    value = _get(_mapping(body, key), key)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise DecodingError(f"{key!r} is not an integer: {value!r}")
+    return value
+
+
+def _list(body: Mapping[str, Any], key: str) -> list[Any]:
+    value = _get(body, key)
+    if not isinstance(value, list):
+        raise DecodingError(f"{key!r} is not a list: {value!r}")
+    return value
+
+
+def _vec3(body: Mapping[str, Any], key: str) -> tuple[float, float, float]:
+    value = _get(body, key)
+    try:
+        x, y, z = (float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise DecodingError(f"{key!r} is not three numbers: {value!r}") from exc
+    return (x, y, z)
+
+
+def _pose(value: Any) -> np.ndarray:
+    try:
+        pose = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DecodingError(f"'pose' is not a 4x4 matrix of numbers: {value!r}") from exc
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise DecodingError(f"'pose' is not a finite 4x4 matrix: {value!r}")
+    pose.setflags(write=False)
+    return pose

@@ -1,0 +1,101 @@
+"""Requests as plain data, and the registration options checked and encoded for the wire.
+
+A retry must resend exactly what was sent, and the sync and async clients must send exactly the
+same thing, so every request is first built as a frozen :class:`Request` (files already read into
+memory) that either client can hand to httpx as often as needed. The options are checked here,
+before any I/O, and written the way the HTTP contract reads them: ``up=0,0,1`` and
+``estimate_scale=true`` as query parameters, or native JSON values in a JSON body.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+Encoding = Literal["binary", "json"]
+UpLike = Sequence[float] | str
+
+
+@dataclass(frozen=True)
+class Request:
+    """One HTTP request as plain data, so that it can be sent again on a retry.
+
+    ``idempotent`` says whether resending after a connection dropped mid-request is harmless
+    (registration is a pure function; adding a model is not). ``retry`` off means "answer now".
+    """
+
+    method: str
+    path: str
+    params: Mapping[str, str] | None = None
+    content: bytes | None = None
+    json: Any = None
+    files: Mapping[str, tuple[str, bytes, str]] | None = None
+    data: Mapping[str, str] | None = None
+    headers: Mapping[str, str] | None = None
+    idempotent: bool = True
+    retry: bool = True
+
+    def arguments(self) -> dict[str, Any]:
+        """Keyword arguments for ``httpx.Client.request``, unset ones left out."""
+        names = ("params", "content", "json", "files", "data", "headers")
+        return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
+
+
+def registration_options(
+    *, top_k: int | None, up: UpLike | None, estimate_scale: bool, seed: int | None
+) -> dict[str, Any]:
+    """The registration options, checked, with "not given" left out (the server's default)."""
+    options: dict[str, Any] = {}
+    if top_k is not None:
+        if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+            raise ValueError(f"top_k must be a positive integer, got {top_k!r}")
+        options["top_k"] = top_k
+    if up is not None:
+        options["up"] = up_vector(up)
+    if not isinstance(estimate_scale, bool):
+        raise TypeError(f"estimate_scale must be a bool, got {estimate_scale!r}")
+    options["estimate_scale"] = estimate_scale
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        options["seed"] = seed
+    return options
+
+
+def up_vector(up: UpLike) -> list[float]:
+    """Three finite numbers, not all zero, from a sequence or a ``"0,0,1"`` string."""
+    parts: Sequence[Any] = up.split(",") if isinstance(up, str) else up
+    try:
+        vector = [float(v) for v in parts]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"up must be three numbers such as (0, 0, 1), got {up!r}") from exc
+    if len(vector) != 3 or not all(map(math.isfinite, vector)) or not any(vector):
+        raise ValueError(f"up must be three finite numbers, not all zero, got {up!r}")
+    return vector
+
+
+def query(options: Mapping[str, Any]) -> dict[str, str]:
+    """Options as query parameters: ``up=0,0,1``, ``estimate_scale=true``."""
+    params = {}
+    for name, value in options.items():
+        if isinstance(value, bool):
+            params[name] = "true" if value else "false"
+        elif isinstance(value, list):
+            params[name] = ",".join(_number(v) for v in value)
+        else:
+            params[name] = str(value)
+    return params
+
+
+def _number(value: float) -> str:
+    """``1.0`` as ``"1"``, other floats in their shortest exact form."""
+    return str(int(value)) if value.is_integer() else repr(value)
+
+
+def upload(path: str | Path) -> dict[str, tuple[str, bytes, str]]:
+    """The multipart ``file`` field, read into memory so that a retry can resend it."""
+    path = Path(path)
+    return {"file": (path.name, path.read_bytes(), "application/octet-stream")}
