@@ -7,10 +7,11 @@
    it once per heading (a model trained on ``yaw-bin`` rotations sees the query at 8 headings
    45 degrees apart; any other model at one);
 3. **shortlist**: the ``top_k`` library entries by global-descriptor similarity and size;
-4. **match + RANSAC**, per candidate and heading: mutual nearest neighbours in feature space,
-   then the vectorised RANSAC (with the up prior when ``up`` is given); the ``keep_headings``
-   headings with the most inliers are kept (partial views of chairs are often nearly symmetric
-   front to back, and inlier counts alone confuse the two);
+4. **match + RANSAC**, per candidate: the ``keep_headings`` headings whose features agree
+   best with the model's (most mutual nearest neighbours among a fixed subset of query key
+   points) get full mutual matching and the vectorised RANSAC (with the up prior when ``up`` is
+   given); all kept headings go on, since partial views of chairs are often nearly symmetric
+   front to back and inlier counts alone confuse the two;
 5. **ICP**: point-to-plane refinement of the query onto the candidate's surface, per kept
    hypothesis;
 6. **score**: the share of query points the posed model explains, discounted by the RMSE; the
@@ -69,14 +70,23 @@ def mutual_nearest(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -
     return np.stack([np.arange(len(query)), forward], axis=1)
 
 
+def mutual_count(query: np.ndarray, model: np.ndarray) -> int:
+    """How many query features are their nearest model feature's nearest query feature."""
+    distances = (model * model).sum(axis=1)[None, :] - 2.0 * query @ model.T
+    forward = distances.argmin(axis=1)
+    backward = distances.argmin(axis=0)
+    return int((backward[forward] == np.arange(len(query))).sum())
+
+
 class Engine:
     """Registers clouds against a loaded library with one feature extractor.
 
     Parameters: ``headings`` (1, or 8 for ``yaw-bin`` models), ``top_k`` default shortlist size
     (None: every entry), ``ransac_factor`` and ``icp_factor`` (inlier distances in voxels),
     ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up``), ``min_points``
-    (occupied voxels a query needs), ``keep_headings`` (hypotheses per candidate refined by
-    ICP).
+    (occupied voxels a query needs), ``keep_headings`` (headings per candidate that go through
+    RANSAC and ICP), ``ransac_iterations`` (cap on hypotheses per RANSAC), ``probe_points``
+    (query key points used to rank headings).
     """
 
     def __init__(
@@ -91,6 +101,8 @@ class Engine:
         up_tolerance_deg: float = 30.0,
         min_points: int = 50,
         keep_headings: int = 2,
+        ransac_iterations: int = 5_000,
+        probe_points: int = 256,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -101,6 +113,8 @@ class Engine:
         self.up_tolerance_deg = up_tolerance_deg
         self.min_points = min_points
         self.keep_headings = keep_headings
+        self.ransac_iterations = ransac_iterations
+        self.probe_points = probe_points
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
 
     def register(
@@ -183,8 +197,17 @@ class Engine:
         estimate_scale: bool,
         seed: int,
     ) -> list[Hypothesis]:
-        """The ``keep_headings`` best RANSAC hypotheses of one candidate, one per heading."""
+        """RANSAC hypotheses of one candidate at its ``keep_headings`` most consistent headings."""
         entry = self.library[model_id]
+        if len(views) > self.keep_headings:
+            probe = np.random.default_rng(seed).permutation(len(views[0].features))
+            agreement = [
+                mutual_count(
+                    v.features[probe[: self.probe_points] % len(v.features)], entry.features
+                )
+                for v in views
+            ]
+            views = [views[i] for i in np.argsort(agreement)[::-1][: self.keep_headings]]
         found = []
         for view in views:
             matches = mutual_nearest(view.features, entry.features)
@@ -196,9 +219,10 @@ class Engine:
                 up=up,
                 up_tolerance_deg=self.up_tolerance_deg,
                 estimate_scale=estimate_scale,
+                iterations=self.ransac_iterations,
             )
             found.append(Hypothesis(model_id, result.transform, matches, view, result.num_inliers))
-        return sorted(found, key=lambda h: -h.num_inliers)[: self.keep_headings]
+        return found
 
     def _refine(
         self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud

@@ -5,7 +5,8 @@
 * ``learned``: FCGF features from the trained ResUNet in ``model_store/`` (or ``model_dir``)
   through a real library index and the query :class:`~catalign.registration.engine.Engine`
   (vectorised RANSAC with inliers within 2 voxels, since different instances never match
-  exactly; ICP within 1; the up prior when given).
+  exactly; ICP within 1; the up prior when given), on the engine's shortlist of the 10 most
+  similar models by global descriptor.
 """
 
 from __future__ import annotations
@@ -33,8 +34,12 @@ def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
     from catalign.registration.indexed import IndexedRegistrar
 
     extractor = LearnedExtractor(model_dir)
-    return IndexedRegistrar(extractor, name="learned", headings=extractor.headings, up=up)
+    return IndexedRegistrar(
+        extractor, name="learned", headings=extractor.headings, up=up, top_k=LEARNED_TOP_K
+    )
 
+
+LEARNED_TOP_K = 10
 
 METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {
     "fpfh": _fpfh,
