@@ -192,3 +192,91 @@ def train(
         raise fail(error) from None
     typer.echo(json.dumps(card["validation"], indent=2))
     typer.echo(f"model written to {out}")
+
+
+@app.command()
+def serve(
+    library: Annotated[
+        Path | None, typer.Option(help="Library folder (default model_store/library).")
+    ] = None,
+    model_dir: Annotated[
+        Path | None, typer.Option(help="Extractor weights (default model_store/).")
+    ] = None,
+    host: Annotated[str | None, typer.Option(help="Address to listen on (default 127.0.0.1).")] = (
+        None
+    ),
+    port: Annotated[int | None, typer.Option(help="HTTP port (default 8000).")] = None,
+    grpc_port: Annotated[
+        int | None, typer.Option(help="gRPC port, 0 disables gRPC (default 50051).")
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(help="Registration worker threads (default 2).")
+    ] = None,
+    queue: Annotated[
+        int | None, typer.Option(help="Requests that may wait for a worker (default 8).")
+    ] = None,
+    api_key: Annotated[
+        str | None,
+        typer.Option(help="Require this X-API-Key (prefer the CATALIGN_API_KEY variable)."),
+    ] = None,
+    read_only: Annotated[
+        bool | None, typer.Option("--read-only", help="Refuse library changes.")
+    ] = None,
+) -> None:
+    """Serve registration over HTTP (FastAPI on uvicorn) and gRPC.
+
+    Every setting can also come from a CATALIGN_* environment variable (CATALIGN_PORT,
+    CATALIGN_MAX_POINTS, ...; see catalign.api.settings); flags override them.
+    """
+    import uvicorn
+    from pydantic import ValidationError
+
+    from catalign.api.app import create_app
+    from catalign.api.settings import ServiceSettings
+
+    flags = {
+        "library": library,
+        "model_dir": model_dir,
+        "host": host,
+        "port": port,
+        "grpc_port": grpc_port,
+        "workers": workers,
+        "queue": queue,
+        "api_key": api_key,
+        "read_only": read_only,
+    }
+    try:
+        settings = ServiceSettings(**{k: v for k, v in flags.items() if v is not None})
+    except ValidationError as error:
+        first = error.errors()[0]
+        name = str(first["loc"][0]) if first["loc"] else "settings"
+        option = f"--{name.replace('_', '-')}" if name in flags else f"CATALIGN_{name.upper()}"
+        typer.echo(f"error: {option}: {first['msg']}", err=True)
+        raise typer.Exit(code=2) from None
+    try:
+        _check_serve_paths(settings.model_dir, settings.library)
+    except CatalignError as error:
+        raise fail(error) from None
+    logging.getLogger().setLevel(settings.log_level.upper())
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_config=None,
+        access_log=False,  # the app logs one line per request, with its request id
+        timeout_graceful_shutdown=30,
+    )
+
+
+def _check_serve_paths(model_dir: Path, library: Path) -> None:
+    """Fail in one sentence before start-up when the weights or the library are missing."""
+    from catalign.errors import ConfigError
+    from catalign.library.index import info
+    from catalign.training.checkpoint import CARD_FILE, WEIGHTS_FILE
+
+    if not (model_dir / WEIGHTS_FILE).is_file() or not (model_dir / CARD_FILE).is_file():
+        raise ConfigError(
+            f"no trained weights in {model_dir} (expected {WEIGHTS_FILE} and {CARD_FILE}); "
+            "pass --model-dir or train one with `catalign train`"
+        )
+    info(library)

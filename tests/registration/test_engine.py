@@ -84,7 +84,9 @@ def test_shortlist_limits_the_candidates(engine: Engine) -> None:
 def test_same_seed_same_answer(engine: Engine) -> None:
     points = _observe(11, make_pose(np.eye(3), np.array([0.3, 0, 0])))
     one, two = engine.register(points, seed=3), engine.register(points, seed=3)
-    assert np.array_equal(one.pose, two.pose) and one.model_id == two.model_id
+    # identical up to the summation order of Open3D's multi-threaded ICP
+    assert one.model_id == two.model_id
+    np.testing.assert_allclose(one.pose, two.pose, atol=1e-9)
 
 
 @pytest.mark.parametrize(

@@ -70,7 +70,11 @@ class FPFHExtractor:
         import open3d as o3d
 
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        cloud = cloud.voxel_down_sample(self.voxel_size)
+        down = np.asarray(cloud.voxel_down_sample(self.voxel_size).points)
+        # Open3D's parallel down-sampling returns voxels in a varying order; sort them so that
+        # the same cloud always gives the same key points in the same order (determinism)
+        down = down[np.lexsort(down.T[::-1])]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(down))
         cloud.estimate_normals(
             o3d.geometry.KDTreeSearchParamHybrid(radius=2 * self.voxel_size, max_nn=30)
         )

@@ -1,0 +1,177 @@
+"""The one place where errors become HTTP (and gRPC) answers.
+
+The service adds a few errors of its own to catalign's hierarchy (:mod:`catalign.errors`)::
+
+    CatalignError
+    ├── InvalidInputError ─── ModelExistsError       409 model_exists
+    ├── LibraryError ──────── EmptyLibraryError      409 library_empty
+    └── ServiceError
+        ├── PayloadTooLargeError                     413 payload_too_large
+        ├── UnsupportedMediaTypeError                415 unsupported_media_type
+        ├── UnauthorizedError                        401 unauthorized
+        ├── ReadOnlyError                            403 read_only
+        └── BusyError                                503 busy (with Retry-After)
+
+:data:`ERROR_TABLE` maps every class to its status, code and gRPC status name (the most
+specific class wins); every answer has the body ``{"error": {"code", "message"}, "request_id"}``.
+An exception outside the hierarchy is a bug: 500 ``internal``, logged with its traceback, its
+text never shown to the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from catalign.errors import (
+    CatalignError,
+    ConfigError,
+    DegenerateInputError,
+    InvalidInputError,
+    LibraryError,
+    ModelNotFoundError,
+    ShapeReadError,
+)
+
+logger = logging.getLogger(__name__)
+
+
+class ServiceError(CatalignError):
+    """Errors only the service raises (limits, authentication, load)."""
+
+
+class PayloadTooLargeError(ServiceError):
+    """The request body is larger than the configured limit."""
+
+
+class UnsupportedMediaTypeError(ServiceError):
+    """The request body has a content type the endpoint does not read."""
+
+
+class UnauthorizedError(ServiceError):
+    """The API key is missing or wrong."""
+
+
+class ReadOnlyError(ServiceError):
+    """The library cannot be changed: the server runs read-only."""
+
+
+class BusyError(ServiceError):
+    """Every worker is busy and the queue is full; retry after ``retry_after`` seconds."""
+
+    def __init__(self, message: str, retry_after: int = 1) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after
+
+
+class ModelExistsError(InvalidInputError):
+    """A model with this id is already in the library."""
+
+
+class EmptyLibraryError(LibraryError):
+    """The library has no model to register against."""
+
+
+@dataclass(frozen=True)
+class ErrorKind:
+    """How one error class is answered: HTTP status, stable code, gRPC status name."""
+
+    status: int
+    code: str
+    grpc: str
+
+
+INTERNAL = ErrorKind(500, "internal", "INTERNAL")
+
+# Most specific first: the first class an error is an instance of decides.
+ERROR_TABLE: tuple[tuple[type[Exception], ErrorKind], ...] = (
+    (ModelExistsError, ErrorKind(409, "model_exists", "ALREADY_EXISTS")),
+    (DegenerateInputError, ErrorKind(422, "degenerate_input", "INVALID_ARGUMENT")),
+    (InvalidInputError, ErrorKind(422, "invalid_input", "INVALID_ARGUMENT")),
+    (ShapeReadError, ErrorKind(422, "invalid_file", "INVALID_ARGUMENT")),
+    (ModelNotFoundError, ErrorKind(404, "model_not_found", "NOT_FOUND")),
+    (EmptyLibraryError, ErrorKind(409, "library_empty", "FAILED_PRECONDITION")),
+    (LibraryError, ErrorKind(500, "library_error", "INTERNAL")),
+    (ConfigError, ErrorKind(500, "config_error", "INTERNAL")),
+    (PayloadTooLargeError, ErrorKind(413, "payload_too_large", "RESOURCE_EXHAUSTED")),
+    (UnsupportedMediaTypeError, ErrorKind(415, "unsupported_media_type", "INVALID_ARGUMENT")),
+    (UnauthorizedError, ErrorKind(401, "unauthorized", "UNAUTHENTICATED")),
+    (ReadOnlyError, ErrorKind(403, "read_only", "PERMISSION_DENIED")),
+    (BusyError, ErrorKind(503, "busy", "RESOURCE_EXHAUSTED")),
+)
+
+# Errors Starlette raises itself (unknown route, wrong method), by status.
+_HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 413: "payload_too_large"}
+
+
+def kind_of(error: BaseException) -> ErrorKind:
+    """The answer for ``error``: its table entry, else 500 ``internal``."""
+    for cls, kind in ERROR_TABLE:
+        if isinstance(error, cls):
+            return kind
+    return INTERNAL
+
+
+def message_of(error: BaseException) -> str:
+    """What the caller is told: the error's own sentence, never a bug's internals."""
+    if kind_of(error) is INTERNAL:
+        return "internal server error; the request id identifies it in the server's logs"
+    return str(error)
+
+
+def error_body(code: str, message: str, request_id: str) -> dict[str, object]:
+    return {"error": {"code": code, "message": message}, "request_id": request_id}
+
+
+def error_response(error: BaseException, request_id: str) -> JSONResponse:
+    """The JSON answer for ``error`` (with ``Retry-After`` for :class:`BusyError`)."""
+    kind = kind_of(error)
+    headers = {"Retry-After": str(error.retry_after)} if isinstance(error, BusyError) else None
+    return JSONResponse(
+        error_body(kind.code, message_of(error), request_id), kind.status, headers=headers
+    )
+
+
+def request_id_of(request: Request) -> str:
+    return str(getattr(request.state, "request_id", "-"))
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Answer catalign errors, validation errors and Starlette's HTTP errors as JSON."""
+
+    async def on_catalign_error(request: Request, error: Exception) -> JSONResponse:
+        return error_response(error, request_id_of(request))
+
+    async def on_validation_error(request: Request, error: Exception) -> JSONResponse:
+        assert isinstance(error, RequestValidationError)
+        message = describe_validation_errors(error.errors())
+        return error_response(InvalidInputError(message), request_id_of(request))
+
+    async def on_http_error(request: Request, error: Exception) -> JSONResponse:
+        assert isinstance(error, StarletteHTTPException)
+        code = _HTTP_CODES.get(error.status_code, "http_error")
+        return JSONResponse(
+            error_body(code, str(error.detail), request_id_of(request)),
+            error.status_code,
+            headers=error.headers,
+        )
+
+    app.add_exception_handler(CatalignError, on_catalign_error)
+    app.add_exception_handler(RequestValidationError, on_validation_error)
+    app.add_exception_handler(StarletteHTTPException, on_http_error)
+
+
+def describe_validation_errors(errors: object) -> str:
+    """One sentence from pydantic/FastAPI validation errors: where and what, first three."""
+    parts = []
+    items = list(errors) if isinstance(errors, list | tuple) else []
+    for item in items[:3]:
+        loc = ".".join(str(p) for p in item.get("loc", ()) if p != "body")
+        parts.append(f"{loc}: {item.get('msg', 'invalid')}" if loc else item.get("msg", ""))
+    more = f" (and {len(items) - 3} more)" if len(items) > 3 else ""
+    return "; ".join(parts) + more if parts else "invalid request"

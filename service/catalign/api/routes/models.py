@@ -1,0 +1,105 @@
+"""``/models``: list, inspect, add and remove the library models the server registers against.
+
+Adding uploads a shape file (mesh or point cloud) with an optional ``model_id`` (default: the
+file stem) and ``units``; the server describes it, writes the library atomically and serves the
+new library from then on. Ids are checked against the library's id pattern, also after URL
+decoding (``..%2Fx`` is refused with 422, not routed somewhere else).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request, status
+
+from catalign.api.deps import ServiceDep, require_writable
+from catalign.api.inputs import MULTIPART, read_upload
+from catalign.api.routes import error_responses
+from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
+from catalign.geometry.io import SUPPORTED_SUFFIXES
+from catalign.library.sources import UNIT_FACTORS, validate_model_id
+
+router = APIRouter(prefix="/models", tags=["models"])
+
+
+def checked_model_id(model_id: str) -> str:
+    """The path's model id (already URL-decoded), or 422 if it is not a valid id."""
+    return validate_model_id(model_id)
+
+
+ModelId = Annotated[str, Depends(checked_model_id)]
+
+_UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        MULTIPART: {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "file": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "A mesh or point cloud: "
+                        + ", ".join(sorted(SUPPORTED_SUFFIXES)),
+                    },
+                    "model_id": {
+                        "type": "string",
+                        "description": "Id of the new model (default: the file stem).",
+                    },
+                    "units": {
+                        "type": "string",
+                        "enum": list(UNIT_FACTORS),
+                        "default": "m",
+                        "description": "Units of the file's coordinates.",
+                    },
+                },
+                "required": ["file"],
+            }
+        }
+    },
+}
+
+
+@router.get("", response_model=ModelList, responses=error_responses(401))
+async def list_models(service: ServiceDep) -> ModelList:
+    """Every model of the library being served, sorted by id."""
+    models = [ModelPublic.from_entry(e) for e in service.models()]
+    return ModelList(count=len(models), models=models)
+
+
+@router.get(
+    "/{model_id:path}", response_model=ModelPublic, responses=error_responses(401, 404, 422)
+)
+async def get_model(model_id: ModelId, service: ServiceDep) -> ModelPublic:
+    """One model of the library."""
+    return ModelPublic.from_entry(service.model(model_id))
+
+
+@router.post(
+    "",
+    response_model=ModelPublic,
+    status_code=status.HTTP_201_CREATED,
+    dependencies=[Depends(require_writable)],
+    openapi_extra={"requestBody": _UPLOAD_BODY},
+    responses=error_responses(401, 403, 409, 413, 415, 422, 503),
+)
+async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
+    """Describe an uploaded shape and add it to the library (persisted atomically)."""
+    async with read_upload(request, SUPPORTED_SUFFIXES) as upload:
+        model_id = upload.fields.get("model_id") or Path(upload.filename).stem
+        units = upload.fields.get("units") or "m"
+        entry = await service.add_model(upload, model_id, units)
+    return ModelPublic.from_entry(entry)
+
+
+@router.delete(
+    "/{model_id:path}",
+    response_model=ModelRemoved,
+    dependencies=[Depends(require_writable)],
+    responses=error_responses(401, 403, 404, 422, 503),
+)
+async def remove_model(model_id: ModelId, service: ServiceDep) -> ModelRemoved:
+    """Remove a model from the library (persisted atomically)."""
+    count = await service.remove_model(model_id)
+    return ModelRemoved(removed=model_id, count=count)

@@ -1,0 +1,113 @@
+"""``POST /register``: a partial cloud in, the best model with its pose and statistics out.
+
+Three encodings of the same request: JSON (points and options in the body), raw little-endian
+float32 (``application/octet-stream``, options as query parameters) and a multipart upload of a
+.ply/.pcd/.npy/.xyz file (options as query parameters). The route only decodes, calls the
+service and maps the answer.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request
+
+from catalign.api.deps import ServiceDep, SettingsDep
+from catalign.api.errors import request_id_of
+from catalign.api.inputs import (
+    BINARY,
+    CLOUD_SUFFIXES,
+    JSON,
+    MULTIPART,
+    PointQuery,
+    decode_body,
+    media_type,
+    parse_options,
+    parse_up,
+    read_upload,
+)
+from catalign.api.routes import error_responses
+from catalign.api.schemas import (
+    MAX_SEED,
+    MAX_TOP_K,
+    RegisterOptions,
+    RegisterResponse,
+)
+
+router = APIRouter(tags=["registration"])
+
+# The route reads its body itself (three encodings), so FastAPI does not list the JSON form's
+# model; app.py adds RegisterRequest to the OpenAPI components.
+_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        JSON: {"schema": {"$ref": "#/components/schemas/RegisterRequest"}},
+        BINARY: {
+            "schema": {
+                "type": "string",
+                "format": "binary",
+                "description": "N * 12 bytes: little-endian float32 x, y, z per point.",
+            }
+        },
+        MULTIPART: {
+            "schema": {
+                "type": "object",
+                "properties": {
+                    "file": {
+                        "type": "string",
+                        "format": "binary",
+                        "description": "A point cloud file: " + ", ".join(sorted(CLOUD_SUFFIXES)),
+                    }
+                },
+                "required": ["file"],
+            }
+        },
+    },
+}
+
+
+def query_options(
+    top_k: Annotated[
+        int | None, Query(ge=1, le=MAX_TOP_K, description="Models to try (binary/file bodies).")
+    ] = None,
+    up: Annotated[
+        str | None,
+        Query(description="World up direction 'x,y,z', e.g. 0,0,1 (binary/file bodies)."),
+    ] = None,
+    estimate_scale: Annotated[
+        bool, Query(description="Also estimate a uniform scale (binary/file bodies).")
+    ] = False,
+    seed: Annotated[int, Query(ge=0, le=MAX_SEED, description="RANSAC seed.")] = 0,
+) -> RegisterOptions:
+    """Options given as query parameters (a JSON body carries them in the body instead)."""
+    return parse_options(
+        {"top_k": top_k, "up": parse_up(up), "estimate_scale": estimate_scale, "seed": seed}
+    )
+
+
+@router.post(
+    "/register",
+    response_model=RegisterResponse,
+    summary="Register a partial point cloud against the library",
+    openapi_extra={"requestBody": _REQUEST_BODY},
+    responses=error_responses(401, 409, 413, 415, 422, 503),
+)
+async def register(
+    request: Request,
+    service: ServiceDep,
+    settings: SettingsDep,
+    options: Annotated[RegisterOptions, Depends(query_options)],
+) -> RegisterResponse:
+    """The best library model for the cloud, its model -> observation pose and inlier stats.
+
+    Clouds over the server's ``max_points`` (default 500,000) are refused with 422.
+    """
+    service.ensure_capacity()
+    if media_type(request) == MULTIPART:
+        async with read_upload(request, CLOUD_SUFFIXES) as upload:
+            query = PointQuery(options=options, path=upload.path, filename=upload.filename)
+            result = await service.register(query)
+    else:
+        query = await decode_body(request, options, settings.max_points)
+        result = await service.register(query)
+    return RegisterResponse.from_result(result, request_id_of(request))

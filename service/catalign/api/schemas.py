@@ -1,0 +1,193 @@
+"""Pydantic models of the HTTP contract: what requests may hold and what every answer holds.
+
+One family per resource (registration, models, health, info, errors). The SDK in ``client/``
+mirrors these fields, and ``openapi.yaml`` is generated from them, so a change here is a change
+of the public contract. Converters from the engine's and the library's dataclasses live next to
+the models they fill, so that routes only call them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from typing_extensions import TypeAliasType
+
+if TYPE_CHECKING:
+    from catalign.library.entry import LibraryEntry
+    from catalign.registration.base import RegistrationResult
+
+MAX_SEED = 2**31 - 1
+MAX_TOP_K = 10_000
+
+# Plain JSON data, spelled out (pydantic's JsonValue renders as the untyped schema {}).
+JsonData = TypeAliasType(
+    "JsonData", "str | int | float | bool | list[JsonData] | dict[str, JsonData] | None"
+)
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+
+
+class RegisterOptions(BaseModel):
+    """Options of one registration (JSON body fields, or query parameters for other bodies)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    top_k: int | None = Field(
+        default=None,
+        ge=1,
+        le=MAX_TOP_K,
+        description="Library models to register against, best retrieval scores first "
+        "(default: the server's setting, normally every model).",
+    )
+    up: tuple[float, float, float] | None = Field(
+        default=None,
+        description="The world's up direction when the chair stands upright (e.g. [0, 0, 1]); "
+        "restricts poses to upright ones.",
+    )
+    estimate_scale: bool = Field(default=False, description="Also estimate a uniform scale.")
+    seed: int = Field(
+        default=0, ge=0, le=MAX_SEED, description="RANSAC seed: same request, same answer."
+    )
+
+    @field_validator("up")
+    @classmethod
+    def _up_is_a_direction(
+        cls, value: tuple[float, float, float] | None
+    ) -> tuple[float, float, float] | None:
+        if value is None:
+            return None
+        if not all(math.isfinite(v) for v in value) or math.hypot(*value) < 1e-9:
+            raise ValueError("up must be a finite, non-zero direction like [0, 0, 1]")
+        return value
+
+
+class RegisterRequest(RegisterOptions):
+    """``POST /register`` as JSON: the points and the options."""
+
+    points: list[tuple[float, float, float]] = Field(
+        description="The observed cloud, one [x, y, z] row per point (metres), at most the "
+        "server's max_points (default 500,000).",
+    )
+
+
+class CandidatePublic(BaseModel):
+    model_id: str
+    score: float = Field(description="Alignment score: inlier share discounted by the RMSE.")
+
+
+class RegisterResponse(BaseModel):
+    """The best model for the query, its pose and its inlier statistics."""
+
+    model_id: str
+    pose: Annotated[list[Row4], Field(min_length=4, max_length=4)] = Field(
+        description="4x4 row-major model -> observation transform "
+        "(x_obs = pose[:3, :3] @ x_model + pose[:3, 3]); the 3x3 block is scale * R."
+    )
+    scale: float
+    fitness: float = Field(description="Share of query points within the inlier distance.")
+    inlier_rmse: float
+    num_inliers: int
+    inlier_ratio: float
+    candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
+    timings_ms: dict[str, float] = Field(
+        description="Milliseconds per stage (queue, validate, features, shortlist, "
+        "match_ransac, icp_score, read for files) and the total."
+    )
+    request_id: str
+
+    @classmethod
+    def from_result(cls, result: RegistrationResult, request_id: str) -> RegisterResponse:
+        return cls(
+            model_id=result.model_id,
+            pose=[[float(v) for v in row] for row in result.pose],
+            scale=result.scale,
+            fitness=result.fitness,
+            inlier_rmse=result.inlier_rmse,
+            num_inliers=result.num_inliers,
+            inlier_ratio=result.inlier_ratio,
+            candidates=[
+                CandidatePublic(model_id=c.model_id, score=c.score) for c in result.candidates
+            ],
+            timings_ms={k: float(v) for k, v in result.timings_ms.items()},
+            request_id=request_id,
+        )
+
+
+class ModelPublic(BaseModel):
+    """One library model as callers see it."""
+
+    model_id: str
+    source: str = Field(description="The file it was built from, or procedural:<seed>.")
+    units: str = Field(description="Units the source was declared in (stored in metres).")
+    num_points: int
+    bbox_min: Vec3
+    bbox_max: Vec3
+    size: Vec3
+
+    @classmethod
+    def from_entry(cls, entry: LibraryEntry) -> ModelPublic:
+        return cls(
+            model_id=entry.model_id,
+            source=entry.source,
+            units=entry.units,
+            num_points=entry.num_points,
+            bbox_min=[float(v) for v in entry.bbox_min],
+            bbox_max=[float(v) for v in entry.bbox_max],
+            size=[float(v) for v in entry.size],
+        )
+
+
+class ModelList(BaseModel):
+    count: int
+    models: list[ModelPublic]
+
+
+class ModelRemoved(BaseModel):
+    removed: str
+    count: int = Field(description="Models left in the library.")
+
+
+class LiveStatus(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class ReadyStatus(BaseModel):
+    status: Literal["ready", "starting"]
+
+
+class LibraryInfo(BaseModel):
+    path: str
+    format_version: int
+    models: int
+    fingerprint: str
+    updated: str
+
+
+class Versions(BaseModel):
+    python: str
+    torch: str
+    open3d: str
+    numpy: str
+
+
+class InfoResponse(BaseModel):
+    version: str
+    model_card: dict[str, JsonData] = Field(description="The weights' model card.")
+    library: LibraryInfo
+    voxel_size: float
+    headings: int
+    versions: Versions
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="Stable machine-readable code, e.g. invalid_input.")
+    message: str = Field(description="What was wrong, in words a caller can act on.")
+
+
+class ErrorResponse(BaseModel):
+    """The body of every error answer."""
+
+    error: ErrorDetail
+    request_id: str

@@ -1,0 +1,285 @@
+"""The service behind both front doors (HTTP and gRPC): engine, worker pool, library changes.
+
+:class:`RegistrationService` loads the extractor and the library once, runs every registration
+on the bounded :class:`~catalign.api.pool.WorkPool`, and serialises library changes: each change
+is written with :mod:`catalign.library` (atomic on disk), the library is loaded again and a new
+:class:`~catalign.registration.engine.Engine` replaces the old one in a single assignment, so
+requests already running finish on the library they started with. torch and open3d are imported
+only when the service loads, never by the HTTP layer itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import platform
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+import catalign
+from catalign.api.errors import EmptyLibraryError, ModelExistsError
+from catalign.api.inputs import PointQuery, Upload, check_cloud
+from catalign.api.metrics import Metrics
+from catalign.api.pool import WorkPool
+from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
+from catalign.api.settings import ServiceSettings
+from catalign.errors import CatalignError, ConfigError, ShapeReadError
+
+if TYPE_CHECKING:
+    from catalign.features.extractor import LearnedExtractor
+    from catalign.library.entry import LibraryEntry
+    from catalign.library.index import Library
+    from catalign.registration.base import RegistrationResult
+    from catalign.registration.engine import Engine
+
+logger = logging.getLogger(__name__)
+
+WARMUP_POINTS = 3000
+
+
+class RegistrationService:
+    """Registrations and library changes for one extractor and one library folder."""
+
+    def __init__(self, settings: ServiceSettings, metrics: Metrics) -> None:
+        self.settings = settings
+        self.metrics = metrics
+        self.ready = False
+        self._engine: Engine | None = None
+        self._pool: WorkPool | None = None
+        self._changes = asyncio.Lock()
+
+    # life cycle -------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Load weights and library (off the event loop); errors here stop the server."""
+        self._pool = WorkPool(self.settings.workers, self.settings.queue, self.metrics)
+        await asyncio.to_thread(self._load)
+
+    async def warm_up(self) -> None:
+        """One registration on a worker so that the first real request is not the slow one."""
+        try:
+            if self.settings.warmup:
+                await asyncio.wrap_future(self.pool.submit(self._warm_up, self.engine))
+        except CatalignError as error:
+            logger.warning("warm-up registration refused: %s", error)
+        self.ready = True
+        logger.info("ready: %d models, %d workers", len(self.library), self.pool.workers)
+
+    async def close(self) -> None:
+        self.ready = False
+        if self._pool is not None:
+            await asyncio.to_thread(self._pool.shutdown)
+
+    @property
+    def engine(self) -> Engine:
+        if self._engine is None:
+            raise ConfigError("the service has not loaded its model and library yet")
+        return self._engine
+
+    @property
+    def pool(self) -> WorkPool:
+        if self._pool is None:
+            raise ConfigError("the service has not started yet")
+        return self._pool
+
+    @property
+    def library(self) -> Library:
+        return self.engine.library
+
+    # queries ----------------------------------------------------------------------------------
+
+    def ensure_capacity(self) -> None:
+        """Refuse early (before reading a body) when the queue is already full."""
+        self.pool.ensure_capacity()
+
+    async def register(self, query: PointQuery) -> RegistrationResult:
+        """Register a query on a worker; timings gain ``queue``, ``read`` (files) and ``total``."""
+        engine = self.engine
+        if len(engine.library) == 0:
+            raise EmptyLibraryError("the library has no models; add one with POST /models")
+        submitted = time.perf_counter()
+        result = await self.pool.run(self._register, engine, query, submitted)
+        self.metrics.observe_registration(result.timings_ms, result.inlier_ratio)
+        return result
+
+    def model(self, model_id: str) -> LibraryEntry:
+        return self.library[model_id]
+
+    def models(self) -> list[LibraryEntry]:
+        library = self.library
+        return [library[i] for i in library.ids]
+
+    def info(self) -> InfoResponse:
+        import open3d
+        import torch
+
+        engine = self.engine
+        manifest = engine.library.manifest
+        extractor: LearnedExtractor = engine.extractor  # type: ignore[assignment]
+        return InfoResponse(
+            version=catalign.__version__,
+            model_card=extractor.card,
+            library=LibraryInfo(
+                path=str(self.settings.library),
+                format_version=manifest.format_version,
+                models=len(engine.library),
+                fingerprint=manifest.fingerprint,
+                updated=manifest.updated,
+            ),
+            voxel_size=extractor.voxel_size,
+            headings=engine.headings,
+            versions=Versions(
+                python=platform.python_version(),
+                torch=str(torch.__version__),
+                open3d=str(open3d.__version__),
+                numpy=np.__version__,
+            ),
+        )
+
+    # library changes --------------------------------------------------------------------------
+
+    async def add_model(self, upload: Upload, model_id: str, units: str) -> LibraryEntry:
+        """Describe an uploaded shape and add it as ``model_id``; 409 if the id exists."""
+        from catalign.library.sources import unit_factor, validate_model_id
+
+        validate_model_id(model_id)
+        unit_factor(units)
+
+        def check(library: Library) -> None:
+            if model_id in library:
+                raise ModelExistsError(
+                    f"model {model_id!r} is already in the library; remove it first or choose "
+                    "another model_id"
+                )
+
+        library = await self._change(check, self._add, upload, model_id, units)
+        return library[model_id]
+
+    async def remove_model(self, model_id: str) -> int:
+        """Remove ``model_id``; returns how many models are left."""
+        from catalign.library.sources import validate_model_id
+
+        validate_model_id(model_id)
+
+        def check(library: Library) -> None:
+            library[model_id]  # ModelNotFoundError
+
+        library = await self._change(check, self._remove, model_id)
+        return len(library)
+
+    async def _change(
+        self, check: Callable[[Library], None], change: Callable[..., Library], *args: object
+    ) -> Library:
+        """Run one library change under the lock; shielded, so that a caller who goes away
+        cannot leave the disk changed and the served library stale."""
+        return await asyncio.shield(self._locked_change(check, change, *args))
+
+    async def _locked_change(
+        self, check: Callable[[Library], None], change: Callable[..., Library], *args: object
+    ) -> Library:
+        async with self._changes:
+            engine = self.engine
+            check(engine.library)
+            library = await self.pool.run(change, engine.extractor, *args)
+            self._engine = self._make_engine(engine.extractor, library)
+            self.metrics.library_models.set(len(library))
+            return library
+
+    # worker-side ------------------------------------------------------------------------------
+
+    def _load(self) -> None:
+        from catalign.features.extractor import LearnedExtractor
+        from catalign.library.index import load
+
+        started = time.perf_counter()
+        extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.torch_threads)
+        library = load(self.settings.library, extractor.fingerprint)
+        self._engine = self._make_engine(extractor, library)
+        self.metrics.library_models.set(len(library))
+        logger.info(
+            "loaded %s and %d models from %s in %.1f s",
+            self.settings.model_dir,
+            len(library),
+            self.settings.library,
+            time.perf_counter() - started,
+        )
+
+    def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
+        from catalign.registration.engine import Engine
+
+        return Engine(extractor, library, headings=extractor.headings, top_k=self.settings.top_k)
+
+    def _register(self, engine: Engine, query: PointQuery, submitted: float) -> RegistrationResult:
+        timings = {"queue": (time.perf_counter() - submitted) * 1e3}
+        points = query.points
+        if points is None:
+            from catalign.geometry.io import read_points
+
+            assert query.path is not None
+            started = time.perf_counter()
+            with _shown_as(query.path, query.filename):
+                points = check_cloud(read_points(query.path), self.settings.max_points)
+            timings["read"] = (time.perf_counter() - started) * 1e3
+        options = query.options
+        result = engine.register(
+            points,
+            top_k=options.top_k,
+            up=None if options.up is None else np.asarray(options.up, dtype=np.float64),
+            estimate_scale=options.estimate_scale,
+            seed=options.seed,
+        )
+        timings |= result.timings_ms
+        timings["total"] = (time.perf_counter() - submitted) * 1e3
+        return dataclasses.replace(result, timings_ms=timings, correspondences=None)
+
+    def _warm_up(self, engine: Engine) -> None:
+        started = time.perf_counter()
+        if len(engine.library) == 0:
+            cube = np.random.default_rng(0).uniform(-0.3, 0.3, size=(WARMUP_POINTS, 3))
+            engine.extractor.describe(cube)
+        else:
+            points = engine.library[engine.library.ids[0]].points.astype(np.float64)
+            engine.register(points[:: max(1, len(points) // WARMUP_POINTS)], top_k=1)
+        logger.info("warm-up took %.1f s", time.perf_counter() - started)
+
+    def _add(
+        self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str
+    ) -> Library:
+        from catalign.library.index import add, load
+
+        # The entry records its source path: name the spooled file after the model at least.
+        source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
+        with _shown_as(source, upload.filename):
+            add(
+                self.settings.library,
+                [source],
+                extractor,
+                ids=[model_id],
+                units=units,
+                progress=False,
+            )
+        logger.info("added model %s to %s", model_id, self.settings.library)
+        return load(self.settings.library, extractor.fingerprint)
+
+    def _remove(self, extractor: LearnedExtractor, model_id: str) -> Library:
+        from catalign.library.index import load, remove
+
+        remove(self.settings.library, [model_id])
+        logger.info("removed model %s from %s", model_id, self.settings.library)
+        return load(self.settings.library, extractor.fingerprint)
+
+
+@contextmanager
+def _shown_as(path: Path, name: str) -> Iterator[None]:
+    """Name an uploaded file by its original name, not its temporary path, in read errors."""
+    try:
+        yield
+    except ShapeReadError as error:
+        message = str(error).replace(str(path.resolve()), name).replace(str(path), name)
+        raise ShapeReadError(message) from None

@@ -1,0 +1,82 @@
+"""The service's configuration: one typed settings class, read from ``CATALIGN_*`` variables.
+
+Every knob of ``catalign serve`` lives here, validated once at the edge (a bad port or a zero
+queue fails at start-up with a sentence, not at the first request); command-line flags are passed
+as keyword arguments and so override the environment. Nothing below the API layer sees this
+class: :class:`~catalign.api.service.RegistrationService` turns it into plain arguments.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+import catalign
+
+MiB = 1 << 20
+# The repository's model_store/ (as catalign.features.extractor.DEFAULT_MODEL_DIR, which is not
+# imported here because it imports torch; a test checks that both agree).
+DEFAULT_MODEL_DIR = Path(catalign.__file__).resolve().parents[2] / "model_store"
+
+
+class ServiceSettings(BaseSettings):
+    """Settings of the HTTP and gRPC service (environment prefix ``CATALIGN_``).
+
+    ``workers`` threads run registrations; ``queue`` more requests may wait for one, and any
+    request beyond that is refused at once with 503 ``busy``. ``max_body_bytes`` bounds every
+    request body, ``max_points`` every query cloud. ``api_key``, when set, is required in the
+    ``X-API-Key`` header (gRPC: ``x-api-key`` metadata) by every endpoint but the health checks.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="CATALIGN_", extra="forbid", frozen=True)
+
+    library: Path = Field(default=DEFAULT_MODEL_DIR / "library", description="Library folder.")
+    model_dir: Path = Field(default=DEFAULT_MODEL_DIR, description="Extractor weights folder.")
+    host: str = Field(default="127.0.0.1", min_length=1)
+    port: int = Field(default=8000, ge=1, le=65535)
+    grpc_port: int = Field(default=50051, ge=0, le=65535, description="0 disables gRPC.")
+    workers: int = Field(default=2, ge=1, le=64, description="Registration threads.")
+    queue: int = Field(default=8, ge=0, le=10_000, description="Requests that may wait.")
+    torch_threads: int = Field(default=1, ge=1, le=256, description="torch threads per process.")
+    api_key: SecretStr | None = None
+    read_only: bool = False
+    max_body_bytes: int = Field(default=64 * MiB, ge=1024, description="Request body limit.")
+    max_points: int = Field(default=500_000, ge=1, description="Points a query may have.")
+    top_k: int | None = Field(default=None, ge=1, description="Default shortlist (None: all).")
+    warmup: bool = Field(default=True, description="Run one registration before ready.")
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @field_validator("api_key")
+    @classmethod
+    def _key_is_usable(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None:
+            return None
+        key = value.get_secret_value()
+        if len(key) < 8 or key != key.strip() or not key.isprintable():
+            raise ValueError("an API key needs at least 8 printable characters, no outer spaces")
+        return value
+
+    @field_validator("host")
+    @classmethod
+    def _host_has_no_scheme(cls, value: str) -> str:
+        if "://" in value or "/" in value:
+            raise ValueError(f"host must be a name or address, not a URL: {value!r}")
+        return value
+
+    @model_validator(mode="after")
+    def _ports_differ(self) -> ServiceSettings:
+        if self.grpc_port == self.port:
+            raise ValueError(f"port and grpc_port are both {self.port}; give gRPC another port")
+        return self
+
+    @property
+    def grpc_enabled(self) -> bool:
+        return self.grpc_port != 0
+
+    @property
+    def capacity(self) -> int:
+        """Requests admitted at once: running plus waiting."""
+        return self.workers + self.queue

@@ -1,0 +1,81 @@
+"""Library changes through the API: added and removed models are served at once and persist."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import httpx
+import numpy as np
+import trimesh
+
+from catalign.data.shapes import procedural_shape
+
+if TYPE_CHECKING:
+    from tests.api.conftest import View
+
+
+def _ply_of_chair(seed: int) -> bytes:
+    mesh = procedural_shape(seed).mesh
+    assert mesh is not None
+    return trimesh.exchange.ply.export_ply(trimesh.Trimesh(mesh.vertices, mesh.faces))
+
+
+def test_added_and_removed_models_are_served_and_persist(
+    serve: Callable, library_copy: Path, views: Callable[..., View]
+) -> None:
+    upload = {"file": ("chair seven.ply", _ply_of_chair(7))}
+    with (
+        serve(library=library_copy, warmup=False) as server,
+        httpx.Client(base_url=server.url, timeout=120) as http,
+    ):
+        manifest = (library_copy / "manifest.json").read_bytes()
+        for fields in ({"model_id": ".hidden"}, {"units": "furlongs"}):
+            refused = http.post("/models", files=upload, data=fields)
+            assert refused.status_code == 422, fields
+            assert refused.json()["error"]["code"] == "invalid_input"
+        assert (library_copy / "manifest.json").read_bytes() == manifest
+
+        added = http.post("/models", files=upload, data={"model_id": "chair-7"})
+        assert added.status_code == 201, added.text
+        model = added.json()
+        assert model["model_id"] == "chair-7" and model["units"] == "m"
+        extent = np.ptp(procedural_shape(7).mesh.vertices, axis=0)
+        np.testing.assert_allclose(model["size"], extent, atol=1e-5)
+
+        again = http.post("/models", files=upload, data={"model_id": "chair-7"})
+        assert again.status_code == 409
+        assert again.json()["error"]["code"] == "model_exists"
+
+        traversal = http.delete("/models/..%2Fproc-0002")
+        assert traversal.status_code == 422
+        assert traversal.json()["error"]["code"] == "invalid_input"
+
+        removed = http.delete("/models/proc-0002")
+        assert removed.status_code == 200
+        assert removed.json() == {"removed": "proc-0002", "count": 3}
+
+        listed = http.get("/models").json()
+        assert listed["count"] == 3
+        assert [m["model_id"] for m in listed["models"]] == [
+            "chair-7",
+            "proc-0000",
+            "proc-0001",
+        ]
+
+        # the engine registers against the new library
+        cloud = views(seed=7, step=4).points
+        answer = http.post("/register", json={"points": cloud.tolist(), "up": [0, 0, 1]})
+        assert answer.status_code == 200, answer.text
+        tried = {c["model_id"] for c in answer.json()["candidates"]}
+        assert tried == {"chair-7", "proc-0000", "proc-0001"}
+
+    with (
+        serve(library=library_copy, warmup=False) as server,
+        httpx.Client(base_url=server.url, timeout=30) as http,
+    ):
+        ids = [m["model_id"] for m in http.get("/models").json()["models"]]
+        assert ids == ["chair-7", "proc-0000", "proc-0001"]
+        assert http.get("/models/chair-7").json()["num_points"] > 0
+        assert http.get("/models/proc-0002").status_code == 404

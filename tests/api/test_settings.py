@@ -1,0 +1,60 @@
+"""Settings come from CATALIGN_* variables, flags override them, bad values are refused."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+from typer.testing import CliRunner
+
+from catalign.api.settings import DEFAULT_MODEL_DIR, ServiceSettings
+from catalign.cli import app
+
+
+def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CATALIGN_PORT", "9001")
+    monkeypatch.setenv("CATALIGN_MAX_POINTS", "1234")
+    monkeypatch.setenv("CATALIGN_READ_ONLY", "true")
+    settings = ServiceSettings(port=9002)
+    assert (settings.port, settings.max_points, settings.read_only) == (9002, 1234, True)
+
+
+def test_defaults_serve_model_store() -> None:
+    from catalign.features.extractor import DEFAULT_MODEL_DIR as EXTRACTOR_DEFAULT
+
+    settings = ServiceSettings()
+    assert DEFAULT_MODEL_DIR == EXTRACTOR_DEFAULT
+    assert settings.library == EXTRACTOR_DEFAULT / "library"
+    assert (settings.host, settings.port, settings.grpc_port) == ("127.0.0.1", 8000, 50051)
+    assert settings.max_body_bytes == 64 * 2**20 and settings.max_points == 500_000
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"port": 0},
+        {"port": 70000},
+        {"grpc_port": -1},
+        {"port": 8000, "grpc_port": 8000},
+        {"workers": 0},
+        {"queue": -1},
+        {"api_key": "short"},
+        {"api_key": " padded-key "},
+        {"host": "http://localhost"},
+        {"max_points": 0},
+        {"log_level": "loud"},
+        {"unknown": 1},
+    ],
+)
+def test_bad_values_are_refused(bad: dict) -> None:
+    with pytest.raises(ValidationError):
+        ServiceSettings(**bad)
+
+
+def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
+    runner = CliRunner()
+    bad_port = runner.invoke(app, ["serve", "--port", "0"])
+    assert bad_port.exit_code == 2 and "--port" in bad_port.output
+    no_weights = runner.invoke(app, ["serve", "--model-dir", str(tmp_path)])
+    assert no_weights.exit_code == 2 and "no trained weights" in no_weights.output
