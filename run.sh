@@ -7,8 +7,8 @@ bash scripts/setup.sh
 case "${1:-}" in
     serve)
         shift
-        # Until the HTTP service lands, the main job is the evaluation on a small set.
-        exec .venv/bin/catalign evaluate --method fpfh --max-shapes 6 --views 1 "$@"
+        # The shipped model and default library (model_store/), HTTP on 8000, gRPC on 50051.
+        exec .venv/bin/catalign serve "$@"
         ;;
     test)
         shift

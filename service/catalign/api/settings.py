@@ -45,7 +45,7 @@ class ServiceSettings(BaseSettings):
     read_only: bool = False
     max_body_bytes: int = Field(default=64 * MiB, ge=1024, description="Request body limit.")
     max_points: int = Field(default=500_000, ge=1, description="Points a query may have.")
-    top_k: int | None = Field(default=None, ge=1, description="Default shortlist (None: all).")
+    top_k: int | None = Field(default=10, ge=1, description="Default shortlist (None: all).")
     warmup: bool = Field(default=True, description="Run one registration before ready.")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
