@@ -67,7 +67,8 @@ def test_pose_convention_is_model_to_observation(box_chair: Shape):
 
 
 def test_recovers_known_pose_of_a_shared_chair(shared_chairs: SharedChairs):
-    shape = to_metric(shared_chairs.load(shared_chairs.ids("val")[0]))
+    # val[0] is symmetric under a half turn (a 180-degree answer is as right as the truth)
+    shape = to_metric(shared_chairs.load(shared_chairs.ids("val")[1]))
     rng = np.random.default_rng(0)
     pose = make_pose(random_rotation(rng), rng.uniform(-1.0, 1.0, size=3))
     check_recovered(register_known_pose(shape.points, pose), shape.points, pose)
