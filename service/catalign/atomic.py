@@ -19,8 +19,9 @@ def fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Replace ``path`` with ``data`` atomically."""
+def atomic_write_bytes(path: Path, data: bytes, *, sync_directory: bool = True) -> None:
+    """Replace ``path`` with ``data`` atomically; ``sync_directory=False`` leaves fsyncing the
+    folder to a caller that writes many files and syncs the folder once."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
@@ -31,4 +32,5 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
-    fsync_directory(path.parent)
+    if sync_directory:
+        fsync_directory(path.parent)

@@ -254,17 +254,8 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
     data = entry_bytes(entry)
     sha256 = hashlib.sha256(data).hexdigest()
     relative = entry_file_name(entry.model_id, sha256)
-    target = library_dir / relative
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, target)  # same bytes if the name already exists: content-addressed
-    finally:
-        tmp.unlink(missing_ok=True)
+    # same bytes if the name already exists: entry files are content-addressed
+    atomic_write_bytes(library_dir / relative, data, sync_directory=False)
     return EntryRecord(
         file=relative,
         sha256=sha256,
