@@ -1,4 +1,4 @@
-"""Command-line front door: ``catalign evaluate`` (and the commands later issues add).
+"""Command-line front door: ``catalign evaluate|train|neighbours|serve|library ...``.
 
 Errors that catalign raises on purpose are shown as one sentence with exit code 2; anything else
 is a bug and keeps its traceback.
@@ -13,7 +13,8 @@ from typing import Annotated
 
 import typer
 
-from catalign.errors import CatalignError
+from catalign.cli_support import exit_on_error
+from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -29,11 +30,6 @@ def main(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-
-
-def fail(error: CatalignError) -> typer.Exit:
-    typer.echo(f"error: {error}", err=True)
-    return typer.Exit(code=2)
 
 
 @app.command()
@@ -70,13 +66,13 @@ def evaluate(
     from catalign.registration.methods import check_method
 
     settings = tuple(setting or ("same", "cross"))
-    try:
+    with exit_on_error():
         check_method(method)  # an unknown name fails before any data is read
         for name in settings:
             if name not in ("same", "cross"):
-                raise _bad_option(f"unknown setting {name!r}; use same or cross")
+                raise ConfigError(f"unknown setting {name!r}; use same or cross")
         if pose_mode not in ("upright", "so3"):
-            raise _bad_option(f"unknown pose mode {pose_mode!r}; use upright or so3")
+            raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright or so3")
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]
@@ -88,19 +84,11 @@ def evaluate(
             up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
-    except CatalignError as error:
-        raise fail(error) from None
     prior = "" if config.up_prior else "-no-up"
     path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}.json"
     write_report(report, path)
     typer.echo(report["table"])
     typer.echo(f"\nreport written to {path}")
-
-
-def _bad_option(message: str) -> CatalignError:
-    from catalign.errors import ConfigError
-
-    return ConfigError(message)
 
 
 @app.command()
@@ -114,11 +102,9 @@ def neighbours(
     from catalign.data.neighbours import shape_neighbours
     from catalign.data.shapes import SharedChairs
 
-    try:
+    with exit_on_error():
         chairs = SharedChairs(chairs_dir)
         shapes = {i: chairs.load(i).points for i in chairs.ids()}
-    except CatalignError as error:
-        raise fail(error) from None
     result = shape_neighbours(shapes, chairs.ids("train"), k=k)
     for shape_id, near in result.items():
         typer.echo(f"{shape_id}: " + ", ".join(f"{n} ({d:.4f})" for n, d in near))
@@ -185,11 +171,9 @@ def train(
         first = error.errors()[0]
         typer.echo(f"error: --{first['loc'][0]}: {first['msg']}", err=True)
         raise typer.Exit(code=2) from None
-    try:
+    with exit_on_error():
         shapes, val_ids = training_shapes(config, SharedChairs(chairs_dir))
         card = run_training(config, shapes, val_ids)
-    except CatalignError as error:
-        raise fail(error) from None
     typer.echo(json.dumps(card["validation"], indent=2))
     typer.echo(f"model written to {out}")
 
@@ -253,10 +237,8 @@ def serve(
         option = f"--{name.replace('_', '-')}" if name in flags else f"CATALIGN_{name.upper()}"
         typer.echo(f"error: {option}: {first['msg']}", err=True)
         raise typer.Exit(code=2) from None
-    try:
+    with exit_on_error():
         _check_serve_paths(settings.model_dir, settings.library)
-    except CatalignError as error:
-        raise fail(error) from None
     logging.getLogger().setLevel(settings.log_level.upper())
     uvicorn.run(
         create_app(settings),

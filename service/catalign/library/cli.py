@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from catalign.errors import CatalignError
+from catalign.cli_support import exit_on_error
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -29,11 +29,6 @@ def _extractor(model_dir: Path | None):
     return LearnedExtractor(model_dir)
 
 
-def _fail(error: CatalignError) -> typer.Exit:
-    typer.echo(f"error: {error}", err=True)
-    return typer.Exit(code=2)
-
-
 @app.command()
 def build(
     sources: Annotated[list[Path], typer.Argument(help="Shape files and folders.")],
@@ -45,12 +40,10 @@ def build(
     """Build a library from meshes and point clouds (model id = file stem)."""
     from catalign.library.index import build as build_index
 
-    try:
+    with exit_on_error():
         manifest = build_index(
             sources, out, _extractor(model_dir), units=units, overwrite=overwrite
         )
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo(f"built {out}: {len(manifest.entries)} models")
 
 
@@ -65,12 +58,10 @@ def procedural(
     """Build a library of procedural chairs (the shipped default library)."""
     from catalign.library.index import build_procedural
 
-    try:
+    with exit_on_error():
         manifest = build_procedural(
             out, _extractor(model_dir), count, first_seed, overwrite=overwrite
         )
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo(f"built {out}: {len(manifest.entries)} procedural chairs")
 
 
@@ -85,12 +76,10 @@ def add(
     """Add models to a library without rebuilding it."""
     from catalign.library.index import add as add_entries
 
-    try:
+    with exit_on_error():
         manifest = add_entries(
             library, sources, _extractor(model_dir), units=units, replace=replace
         )
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo(f"{library}: {len(manifest.entries)} models")
 
 
@@ -102,10 +91,8 @@ def remove(
     """Remove models from a library."""
     from catalign.library.index import remove as remove_entries
 
-    try:
+    with exit_on_error():
         manifest = remove_entries(library, ids)
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo(f"{library}: {len(manifest.entries)} models")
 
 
@@ -114,10 +101,8 @@ def list_command(library: Annotated[Path, typer.Argument(help="Library folder.")
     """Print the model ids, one per line."""
     from catalign.library.index import list_models
 
-    try:
+    with exit_on_error():
         ids = list_models(library)
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo("\n".join(ids))
 
 
@@ -126,10 +111,8 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
     """Print the manifest summary: format, extractor, dates, size."""
     from catalign.library.index import info as read_info
 
-    try:
+    with exit_on_error():
         manifest = read_info(library)
-    except CatalignError as error:
-        raise _fail(error) from None
     typer.echo(
         f"library: {library}\nformat: {manifest.format_version}\n"
         f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"

@@ -1,0 +1,25 @@
+"""What every ``catalign`` command shares: errors raised on purpose become one sentence.
+
+A :class:`~catalign.errors.CatalignError` is the user's to act on, so it is printed as
+``error: <message>`` with exit code 2, never as a traceback; anything else is a bug and keeps
+its traceback.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import typer
+
+from catalign.errors import CatalignError
+
+
+@contextmanager
+def exit_on_error() -> Iterator[None]:
+    """Run the block; on a CatalignError print its message and exit with code 2."""
+    try:
+        yield
+    except CatalignError as error:
+        typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(code=2) from None
