@@ -10,7 +10,8 @@ from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
 from catalign.library.index import build, load
-from catalign.registration.engine import Engine, mutual_nearest
+from catalign.registration.alignment import mutual_nearest
+from catalign.registration.engine import Engine
 
 SEEDS = (2, 8, 11)
 

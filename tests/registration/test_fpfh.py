@@ -15,7 +15,7 @@ from catalign.geometry.se3 import (
     transform,
     translation_error,
 )
-from catalign.registration.alignment import mutual_matches
+from catalign.registration.alignment import mutual_nearest
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
 from catalign.registration.methods import METHODS, build_registrar
 
@@ -92,14 +92,14 @@ def test_register_needs_prepare():
         build_registrar("fpfh").register(np.zeros((10, 3)))
 
 
-def test_mutual_matches():
+def test_mutual_nearest():
     features = np.eye(40)
     order = np.random.default_rng(0).permutation(40)
-    matches = mutual_matches(features, features[order])
+    matches = mutual_nearest(features, features[order])
     assert len(matches) == 40
     np.testing.assert_array_equal(order[matches[:, 1]], matches[:, 0])
     # too few mutual matches: fall back to all forward nearest neighbours
-    few = mutual_matches(features[:5], features[:5], min_mutual=30)
+    few = mutual_nearest(features[:5], features[:5], min_mutual=30)
     assert few.shape == (5, 2)
 
 

@@ -9,19 +9,36 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
 
 reg = o3d.pipelines.registration
 
 
-def mutual_matches(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -> np.ndarray:
-    """Index pairs (i, j) of feature nearest neighbours, mutual when there are enough of them."""
-    forward = cKDTree(model).query(query, workers=-1)[1]
-    backward = cKDTree(query).query(model, workers=-1)[1]
-    mutual = np.flatnonzero(backward[forward] == np.arange(len(query)))
-    if len(mutual) >= min_mutual:
+def _nearest_both_ways(query: np.ndarray, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each query's nearest model feature, and whether that pair is mutual (L2, by matrix
+    products: far faster than KD-trees in 32 dimensions)."""
+    distances = (
+        (query * query).sum(axis=1)[:, None]
+        + (model * model).sum(axis=1)[None, :]
+        - 2.0 * query @ model.T
+    )
+    forward = distances.argmin(axis=1)
+    backward = distances.argmin(axis=0)
+    return forward, backward[forward] == np.arange(len(query))
+
+
+def mutual_nearest(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -> np.ndarray:
+    """Index pairs (i, j) of feature nearest neighbours: the mutual ones when there are at
+    least ``min_mutual``, else every query's nearest."""
+    forward, is_mutual = _nearest_both_ways(query, model)
+    if is_mutual.sum() >= min_mutual:
+        mutual = np.flatnonzero(is_mutual)
         return np.stack([mutual, forward[mutual]], axis=1)
     return np.stack([np.arange(len(query)), forward], axis=1)
+
+
+def mutual_count(query: np.ndarray, model: np.ndarray) -> int:
+    """How many query features are their nearest model feature's nearest query feature."""
+    return int(_nearest_both_ways(query, model)[1].sum())
 
 
 def point_cloud(points: np.ndarray, normal_radius: float | None = None) -> o3d.geometry.PointCloud:

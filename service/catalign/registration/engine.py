@@ -32,7 +32,12 @@ from catalign.features.extractor import Described, FeatureExtractor
 from catalign.geometry.se3 import axis_angle, invert, rotation_between
 from catalign.library.index import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
-from catalign.registration.alignment import alignment_score, point_cloud
+from catalign.registration.alignment import (
+    alignment_score,
+    mutual_count,
+    mutual_nearest,
+    point_cloud,
+)
 from catalign.registration.base import Candidate, RegistrationResult
 from catalign.registration.ransac import ransac
 from catalign.registration.validation import validate_cloud
@@ -56,26 +61,6 @@ class Hypothesis:
     matches: np.ndarray
     view: QueryView
     num_inliers: int
-
-
-def mutual_nearest(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -> np.ndarray:
-    """Index pairs (i, j) of feature nearest neighbours by L2, found with matrix products;
-    mutual ones when there are at least ``min_mutual``, else every query's nearest."""
-    distances = (model * model).sum(axis=1)[None, :] - 2.0 * query @ model.T
-    forward = distances.argmin(axis=1)
-    backward = distances.argmin(axis=0)
-    mutual = np.flatnonzero(backward[forward] == np.arange(len(query)))
-    if len(mutual) >= min_mutual:
-        return np.stack([mutual, forward[mutual]], axis=1)
-    return np.stack([np.arange(len(query)), forward], axis=1)
-
-
-def mutual_count(query: np.ndarray, model: np.ndarray) -> int:
-    """How many query features are their nearest model feature's nearest query feature."""
-    distances = (model * model).sum(axis=1)[None, :] - 2.0 * query @ model.T
-    forward = distances.argmin(axis=1)
-    backward = distances.argmin(axis=0)
-    return int((backward[forward] == np.arange(len(query))).sum())
 
 
 class Engine:

@@ -21,7 +21,7 @@ from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.se3 import invert
 from catalign.registration.alignment import (
     alignment_score,
-    mutual_matches,
+    mutual_nearest,
     point_cloud,
     ransac_icp,
 )
@@ -81,7 +81,7 @@ class FeatureRegistrar(Registrar):
         started = time.perf_counter()
         candidates, best = [], None
         for model_id, model in self._library.items():
-            matches = mutual_matches(query.features, model.features)
+            matches = mutual_nearest(query.features, model.features)
             result = ransac_icp(
                 query.cloud,
                 model.cloud,
