@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -31,8 +30,6 @@ from tqdm import tqdm
 
 from catalign.geometry.ncc import to_ncc
 from catalign.geometry.sampling import subsample
-
-log = logging.getLogger(__name__)
 
 
 def emd_exact(a: np.ndarray, b: np.ndarray) -> float:

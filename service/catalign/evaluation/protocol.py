@@ -12,7 +12,6 @@ scaled to a realistic height, seen by a random camera with structured-light nois
 
 from __future__ import annotations
 
-import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,8 +25,6 @@ from catalign.data.views import PoseMode, random_camera, random_object_pose, ren
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
-
-log = logging.getLogger(__name__)
 
 Setting = Literal["same", "cross"]
 SETTINGS: tuple[Setting, ...] = ("same", "cross")
