@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _report import load_average, publish
 
 from catalign.features.resunet import build_model, extract_features
 
@@ -84,7 +85,7 @@ def main() -> None:
 
     torch.manual_seed(0)
     points = chair_cloud(args.points)
-    load_before = os.getloadavg()[0]
+    load_before = load_average()
     rows = []
     for threads in args.threads:
         torch.set_num_threads(threads)
@@ -98,7 +99,7 @@ def main() -> None:
                     f" | {n_params / 1e6:.2f} M | {stats['median_ms']:.1f} | {stats['p95_ms']:.1f}"
                     f" | {stats['min_ms']:.1f} | {stats['cpu_ms']:.1f} |"
                 )
-    load_after = os.getloadavg()[0]
+    load_after = load_average()
 
     lines = [
         "# FCGF feature extraction on CPU",
@@ -116,9 +117,7 @@ def main() -> None:
         *rows,
     ]
     table = "\n".join(lines) + "\n"
-    print(table)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(table)
+    publish(table, args.out)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _report import load_average, publish
 
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import WORLD_UP, camera_at, random_object_pose, render_view
@@ -83,7 +84,7 @@ def main() -> None:
         "",
         f"{platform.machine()}, {torch.get_num_threads()} torch threads, top_k={args.top_k}, "
         f"headings={extractor.headings}, {args.runs} timed runs after one warm-up "
-        f"(FPFH: {max(1, args.runs // 2)}); load average {_load()}.",
+        f"(FPFH: {max(1, args.runs // 2)}); load average {load_average():.2f}.",
         "",
         "| method | library size | median ms | p95 ms |",
         "|---|---|---|---|",
@@ -91,16 +92,7 @@ def main() -> None:
     for method, size, ms in rows:
         lines.append(f"| {method} | {size} | {np.median(ms):.0f} | {np.percentile(ms, 95):.0f} |")
     table = "\n".join(lines) + "\n"
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(table)
-    print(table)
-
-
-def _load() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().split()[0]
-    except OSError:
-        return "unknown"
+    publish(table, RESULTS)
 
 
 if __name__ == "__main__":

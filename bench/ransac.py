@@ -21,12 +21,14 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _report import load_average, publish
 
 from catalign.geometry.se3 import make_pose, random_rotation, rotation_error_deg, transform
+from catalign.registration import alignment
+from catalign.registration.alignment import point_cloud
 from catalign.registration.ransac import ransac
 
 INLIER_DISTANCE = 0.03
-reg = o3d.pipelines.registration
 
 
 def correspondences(
@@ -42,22 +44,8 @@ def correspondences(
 
 
 def open3d_ransac(src: np.ndarray, dst: np.ndarray, seed: int) -> np.ndarray:
-    o3d.utility.random.seed(seed)
-    pairs = np.repeat(np.arange(len(src), dtype=np.int32)[:, None], 2, axis=1)
-    result = reg.registration_ransac_based_on_correspondence(
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)),
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst)),
-        o3d.utility.Vector2iVector(pairs),
-        INLIER_DISTANCE,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            reg.CorrespondenceCheckerBasedOnDistance(INLIER_DISTANCE),
-        ],
-        reg.RANSACConvergenceCriteria(100_000, 0.999),
-    )
-    return np.asarray(result.transformation)
+    pairs = np.repeat(np.arange(len(src))[:, None], 2, axis=1)
+    return alignment.open3d_ransac(point_cloud(src), point_cloud(dst), pairs, INLIER_DISTANCE, seed)
 
 
 def numpy_ransac(src: np.ndarray, dst: np.ndarray, seed: int) -> np.ndarray:
@@ -94,7 +82,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results/ransac.md")
     args = parser.parse_args()
 
-    load_before = os.getloadavg()[0]
+    load_before = load_average()
     rows = []
     for n in (500, 2000):
         for outlier_ratio in (0.5, 0.9):
@@ -104,7 +92,7 @@ def main() -> None:
                 f"| {n} | {outlier_ratio:.0%} | {ours:.1f} | {theirs:.1f} | {theirs / ours:.1f}"
                 f" | {our_err:.2f} | {their_err:.2f} |"
             )
-    load_after = os.getloadavg()[0]
+    load_after = load_average()
     threads = {k: os.environ.get(k, "unset") for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
 
     lines = [
@@ -125,9 +113,7 @@ def main() -> None:
         *rows,
     ]
     table = "\n".join(lines) + "\n"
-    print(table)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(table)
+    publish(table, args.out)
 
 
 if __name__ == "__main__":

@@ -47,6 +47,7 @@ from pathlib import Path
 import grpc
 import httpx
 import numpy as np
+from _report import load_average, publish
 
 from catalign.api import catalign_pb2, catalign_pb2_grpc
 from catalign.data.shapes import procedural_shape
@@ -272,7 +273,7 @@ def main() -> None:
         "binary": _median_ms(lambda: np.ascontiguousarray(points, dtype="<f4").tobytes()),
         "JSON": _median_ms(lambda: json.dumps({"points": points.tolist()}).encode()),
     }
-    load_before = _load()
+    load_before = f"{load_average():.2f}"
     wall_started = time.perf_counter()
 
     direct = engine_direct(points, args.top_k, args.seed, args.engine_runs)
@@ -316,7 +317,8 @@ def main() -> None:
         f"{encode_ms['binary']:.1f} ms, JSON {encode_ms['JSON']:.0f} ms), "
         f"top_k={args.top_k}, seed={args.seed}, up=+Z; "
         f"{args.rounds} interleaved rounds per level; load average {load_before} before, "
-        f"{_load()} after; {elapsed / 60:.1f} min in all (server ready in {ready_s:.0f} s).",
+        f"{load_average():.2f} after; {elapsed / 60:.1f} min in all "
+        f"(server ready in {ready_s:.0f} s).",
         "",
         f"Engine median (server `timings_ms.total`, concurrency 1, all transports): "
         f"**{engine_ms:.0f} ms**"
@@ -350,9 +352,7 @@ def main() -> None:
         "at concurrency > 1). Target: binary adds at most 10 ms to the engine's own time.",
     ]
     table = "\n".join(lines) + "\n"
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(table)
-    print(table)
+    publish(table, RESULTS)
 
 
 def _median_ms(call: Callable[[], object], runs: int = 5) -> float:
@@ -383,13 +383,6 @@ def _cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown CPU"
-
-
-def _load() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().split()[0]
-    except OSError:
-        return "unknown"
 
 
 if __name__ == "__main__":

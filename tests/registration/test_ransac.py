@@ -3,7 +3,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import open3d as o3d
 import pytest
 
 from catalign.errors import DegenerateInputError, InvalidInputError
@@ -15,6 +14,8 @@ from catalign.geometry.se3 import (
     transform,
     translation_error,
 )
+from catalign.registration import alignment
+from catalign.registration.alignment import point_cloud
 from catalign.registration.ransac import (
     _count_inliers,
     _score_features,
@@ -255,24 +256,9 @@ def test_up_prior_filters_hypotheses(upright_and_tipped):
 
 
 def open3d_ransac(src: np.ndarray, dst: np.ndarray, distance: float, seed: int) -> np.ndarray:
-    """The first half of ``alignment.ransac_icp``: source = model points, target = observed."""
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(seed)
-    pairs = np.repeat(np.arange(len(src), dtype=np.int32)[:, None], 2, axis=1)
-    result = reg.registration_ransac_based_on_correspondence(
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)),
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst)),
-        o3d.utility.Vector2iVector(pairs),
-        distance,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            reg.CorrespondenceCheckerBasedOnDistance(distance),
-        ],
-        reg.RANSACConvergenceCriteria(100_000, 0.999),
-    )
-    return np.asarray(result.transformation)
+    """What the FPFH baseline runs: source = model points, target = observed."""
+    pairs = np.repeat(np.arange(len(src))[:, None], 2, axis=1)
+    return alignment.open3d_ransac(point_cloud(src), point_cloud(dst), pairs, distance, seed)
 
 
 def test_agrees_with_open3d(rng):

@@ -51,6 +51,33 @@ def point_cloud(points: np.ndarray, normal_radius: float | None = None) -> o3d.g
     return cloud
 
 
+def open3d_ransac(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    matches: np.ndarray,
+    distance: float,
+    seed: int,
+    iterations: int = 100_000,
+    confidence: float = 0.999,
+) -> np.ndarray:
+    """Open3D's correspondence RANSAC (the classic recipe's checkers); source -> target 4x4."""
+    o3d.utility.random.seed(seed)
+    result = reg.registration_ransac_based_on_correspondence(
+        source,
+        target,
+        o3d.utility.Vector2iVector(matches.astype(np.int32)),
+        distance,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(distance),
+        ],
+        reg.RANSACConvergenceCriteria(iterations, confidence),
+    )
+    return np.asarray(result.transformation)
+
+
 def ransac_icp(
     query: o3d.geometry.PointCloud,
     model: o3d.geometry.PointCloud,
@@ -62,26 +89,9 @@ def ransac_icp(
     confidence: float = 0.999,
 ) -> reg.RegistrationResult:
     """RANSAC on putative matches, then point-to-plane ICP (the model needs normals)."""
-    o3d.utility.random.seed(seed)
-    coarse = reg.registration_ransac_based_on_correspondence(
-        query,
-        model,
-        o3d.utility.Vector2iVector(matches.astype(np.int32)),
-        ransac_distance,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            reg.CorrespondenceCheckerBasedOnDistance(ransac_distance),
-        ],
-        reg.RANSACConvergenceCriteria(iterations, confidence),
-    )
+    coarse = open3d_ransac(query, model, matches, ransac_distance, seed, iterations, confidence)
     return reg.registration_icp(
-        query,
-        model,
-        icp_distance,
-        coarse.transformation,
-        reg.TransformationEstimationPointToPlane(),
+        query, model, icp_distance, coarse, reg.TransformationEstimationPointToPlane()
     )
 
 

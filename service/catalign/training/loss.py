@@ -51,8 +51,7 @@ def contrastive_loss(
     j = torch.randint(len(fb), (count,), generator=generator)
     far = (aligned_a[i] - aligned_b[j]).norm(dim=1) > neg_radius
     neg = (fa[i[far]] - fb[j[far]]).norm(dim=1)
-    loss = torch.relu(pos - pos_margin).pow(2).mean() + _mean(torch.relu(neg_margin - neg).pow(2))
-    return LossTerms(loss, _scalar(pos), _scalar(neg))
+    return _hinges(pos, neg, pos_margin, neg_margin)
 
 
 def hardest_contrastive_loss(
@@ -81,6 +80,11 @@ def hardest_contrastive_loss(
         nearest = feature_distance.min(dim=1).values
         hardest.append(nearest[torch.isfinite(nearest)])
     neg = torch.cat(hardest)
+    return _hinges(pos, neg, pos_margin, neg_margin)
+
+
+def _hinges(pos: Tensor, neg: Tensor, pos_margin: float, neg_margin: float) -> LossTerms:
+    """Squared hinges: positives beyond ``pos_margin``, negatives within ``neg_margin``."""
     loss = torch.relu(pos - pos_margin).pow(2).mean() + _mean(torch.relu(neg_margin - neg).pow(2))
     return LossTerms(loss, _scalar(pos), _scalar(neg))
 
