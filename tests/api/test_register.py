@@ -20,7 +20,16 @@ from catalign.geometry.se3 import rotation_error_deg
 if TYPE_CHECKING:
     from tests.api.conftest import Server, View
 
-STAGES = {"queue", "validate", "features", "shortlist", "match_ransac", "icp_score", "total"}
+STAGES = {
+    "queue",
+    "validate",
+    "features",
+    "shortlist",
+    "match_ransac",
+    "verify",
+    "icp_score",
+    "total",
+}
 BINARY = {"content-type": "application/octet-stream"}
 FAST = {"top_k": 1, "seed": 3}
 LIBRARY = {"proc-0000", "proc-0001", "proc-0002"}

@@ -17,6 +17,7 @@ from catalign.features.resunet import (
     ResUNetSmall,
     build_model,
     extract_features,
+    extract_features_batch,
     voxelize,
 )
 from catalign.features.sparse import SparseTensor
@@ -79,6 +80,18 @@ def test_eval_is_deterministic(small_model: ResUNetSmall) -> None:
     _, a = extract_features(small_model, points, VOXEL)
     _, b = extract_features(small_model, points, VOXEL)
     assert torch.equal(a, b)
+
+
+def test_a_batch_of_clouds_gets_the_features_each_would_get_alone(
+    small_model: ResUNetSmall,
+) -> None:
+    clouds = [_cloud(6), _cloud(7, n=1500) + 0.3, _cloud(8)]
+    batched = extract_features_batch(small_model, clouds, VOXEL)
+    assert len(batched) == len(clouds)
+    for cloud, (centroids, features) in zip(clouds, batched, strict=True):
+        alone_centroids, alone_features = extract_features(small_model, cloud, VOXEL)
+        assert torch.equal(centroids, alone_centroids)
+        torch.testing.assert_close(features, alone_features, atol=1e-5, rtol=0)
 
 
 def test_gradients_reach_every_parameter() -> None:

@@ -35,11 +35,29 @@ def _observe(seed: int, pose: np.ndarray) -> np.ndarray:
     return transform(procedural_shape(seed).points, pose)
 
 
-def test_mutual_nearest_finds_a_permutation() -> None:
-    features = np.random.default_rng(0).normal(size=(50, 8))
-    order = np.random.default_rng(1).permutation(50)
-    pairs = mutual_nearest(features, features[order])
-    assert np.array_equal(order[pairs[:, 1]], pairs[:, 0])
+def test_mutual_nearest_agrees_with_brute_force_distances() -> None:
+    rng = np.random.default_rng(3)
+    query = rng.gamma(2.0, size=(300, 33)).astype(np.float32)  # FPFH-like: not unit norm
+    model = rng.gamma(2.0, size=(400, 33)).astype(np.float32)
+    distances = np.linalg.norm(query[:, None].astype(np.float64) - model[None], axis=2)
+    forward, backward = distances.argmin(axis=1), distances.argmin(axis=0)
+    mutual = np.flatnonzero(backward[forward] == np.arange(len(query)))
+    pairs = mutual_nearest(query, model, min_mutual=1)
+    assert np.array_equal(pairs, np.stack([mutual, forward[mutual]], axis=1))
+    both_ways = mutual_nearest(query, model, min_mutual=len(query) + 1)
+    expected = {(i, j) for i, j in enumerate(forward)} | {(i, j) for j, i in enumerate(backward)}
+    assert {tuple(pair) for pair in both_ways.tolist()} == expected
+    assert len(both_ways) == len(expected)
+
+
+def test_a_hub_feature_does_not_collapse_the_matches() -> None:
+    rng = np.random.default_rng(4)
+    model = rng.normal(size=(200, 32))
+    query = model[0] + rng.normal(scale=0.01, size=(150, 32))  # every query's nearest: model 0
+    pairs = mutual_nearest(query, model)
+    # one mutual pair only, so each model feature brings its nearest query too
+    assert np.array_equal(np.unique(pairs[:, 1]), np.arange(len(model)))
+    assert np.all(pairs[pairs[:, 1] == 0][:, 0] == np.arange(len(query)))
 
 
 def test_a_library_shape_under_a_known_pose_is_recovered(engine: Engine) -> None:
@@ -55,6 +73,7 @@ def test_a_library_shape_under_a_known_pose_is_recovered(engine: Engine) -> None
         "features",
         "shortlist",
         "match_ransac",
+        "verify",
         "icp_score",
     }
 

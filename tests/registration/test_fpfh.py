@@ -98,7 +98,7 @@ def test_mutual_nearest():
     matches = mutual_nearest(features, features[order])
     assert len(matches) == 40
     np.testing.assert_array_equal(order[matches[:, 1]], matches[:, 0])
-    # too few mutual matches: fall back to all forward nearest neighbours
+    # too few mutual matches: fall back to the nearest in both directions (here the same 5)
     few = mutual_nearest(features[:5], features[:5], min_mutual=30)
     assert few.shape == (5, 2)
 

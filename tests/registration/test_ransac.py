@@ -17,11 +17,11 @@ from catalign.geometry.se3 import (
 from catalign.registration import alignment
 from catalign.registration.alignment import point_cloud
 from catalign.registration.ransac import (
-    _count_inliers,
-    _score_features,
+    count_inliers,
     kabsch,
     kabsch_batch,
     ransac,
+    residual_terms,
     umeyama,
     umeyama_batch,
 )
@@ -127,7 +127,7 @@ def test_batched_inlier_count_matches_brute_force(rng):
     )
     predicted = scale[:, None, None] * np.einsum("hij,nj->hni", rotation, x) + translation[:, None]
     expected = (np.linalg.norm(predicted - y, axis=2) < 1.0).sum(axis=1)
-    counts = _count_inliers(_score_features(x, y), scale, rotation, translation, 1.0)
+    counts = count_inliers(residual_terms(x, y), scale, rotation, translation, 1.0)
     np.testing.assert_array_equal(counts, expected)
 
 

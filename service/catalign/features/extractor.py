@@ -8,6 +8,7 @@ another, because its stored features would not be comparable.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -32,6 +33,8 @@ class FeatureExtractor(Protocol):
 
     def describe(self, points: np.ndarray) -> Described: ...
 
+    def describe_many(self, clouds: Sequence[np.ndarray]) -> list[Described]: ...
+
 
 class LearnedExtractor:
     """FCGF descriptors of voxel centroids from a trained ResUNet (``model_store/`` layout).
@@ -52,11 +55,15 @@ class LearnedExtractor:
             torch.set_num_threads(threads)
 
     def describe(self, points: np.ndarray) -> Described:
-        from catalign.features.resunet import extract_features
+        return self.describe_many([points])[0]
+
+    def describe_many(self, clouds: Sequence[np.ndarray]) -> list[Described]:
+        """Several clouds in one forward pass (each gets the features it would alone)."""
+        from catalign.features.resunet import extract_features_batch
 
         with torch.inference_mode():
-            centroids, features = extract_features(self.model, points, self.voxel_size)
-        return Described(centroids.numpy().astype(np.float64), features.numpy())
+            described = extract_features_batch(self.model, clouds, self.voxel_size)
+        return [Described(c.numpy().astype(np.float64), f.numpy()) for c, f in described]
 
 
 class FPFHExtractor:
@@ -82,3 +89,6 @@ class FPFHExtractor:
             cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * self.voxel_size, max_nn=100)
         )
         return Described(np.asarray(cloud.points).copy(), fpfh.data.T.astype(np.float32))
+
+    def describe_many(self, clouds: Sequence[np.ndarray]) -> list[Described]:
+        return [self.describe(points) for points in clouds]

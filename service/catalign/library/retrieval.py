@@ -20,6 +20,10 @@ if TYPE_CHECKING:
 
 SIZE_TOLERANCE = 0.15  # noise and stray points may stretch a view this much past the model
 SIZE_PENALTY = 2.0  # score lost per unit of relative excess beyond the tolerance
+# With gravity known the query's height is seen directly (feet to top of the back, in most
+# views), and it is the sharpest cue a partial view gives: score lost per unit of relative
+# height difference, halved when the view is the shorter one (its feet may be hidden).
+HEIGHT_PENALTY = 4.0
 _EPS = 1e-12
 
 
@@ -34,12 +38,16 @@ def global_descriptor(features: np.ndarray) -> np.ndarray:
 
 
 def retrieval_scores(
-    library: Library, query_descriptor: np.ndarray, query_size: np.ndarray | None
+    library: Library,
+    query_descriptor: np.ndarray,
+    query_size: np.ndarray | None,
+    query_height: float | None = None,
 ) -> np.ndarray:
-    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalty.
+    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalties.
 
     ``query_size`` is the query's bounding-box extents (``np.ptp(points, axis=0)``), in metres;
-    ``None`` skips the size check.
+    ``None`` skips the size check. ``query_height`` is its extent along the up direction, when
+    gravity is known: entries whose height (along +Y) differs lose :func:`height_penalty`.
     """
     if len(library) == 0:
         return np.zeros(0)
@@ -54,6 +62,8 @@ def retrieval_scores(
     scores = models @ query / np.maximum(norms, _EPS)
     if query_size is not None:
         scores -= size_penalty(np.asarray(query_size, dtype=np.float64), library.sizes)
+    if query_height is not None:
+        scores -= height_penalty(query_height, library.sizes[:, 1])
     return scores
 
 
@@ -62,6 +72,13 @@ def size_penalty(query_size: np.ndarray, model_sizes: np.ndarray) -> np.ndarray:
     diagonals = np.linalg.norm(np.asarray(model_sizes, dtype=np.float64), axis=1)
     excess = float(np.max(query_size)) / np.maximum(diagonals, _EPS) - (1.0 + SIZE_TOLERANCE)
     return SIZE_PENALTY * np.clip(excess, 0.0, None)
+
+
+def height_penalty(query_height: float, model_heights: np.ndarray) -> np.ndarray:
+    """Penalty (E,) for the relative difference between the observed and each model's height."""
+    heights = np.maximum(np.asarray(model_heights, dtype=np.float64), _EPS)
+    relative = (query_height - heights) / heights
+    return HEIGHT_PENALTY * np.where(relative > 0, relative, -0.5 * relative)
 
 
 def shortlist(

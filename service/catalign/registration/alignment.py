@@ -14,31 +14,44 @@ reg = o3d.pipelines.registration
 
 
 def _nearest_both_ways(query: np.ndarray, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each query's nearest model feature, and whether that pair is mutual (L2, by matrix
-    products: far faster than KD-trees in 32 dimensions)."""
-    distances = (
-        (query * query).sum(axis=1)[:, None]
-        + (model * model).sum(axis=1)[None, :]
-        - 2.0 * query @ model.T
-    )
-    forward = distances.argmin(axis=1)
-    backward = distances.argmin(axis=0)
-    return forward, backward[forward] == np.arange(len(query))
+    """Each query's nearest model feature, and each model feature's nearest query feature.
+
+    L2 by one matrix product (far faster than KD-trees in 32 dimensions): the nearest ``m`` to
+    ``q`` maximises ``q.m - |m|^2 / 2``, and the nearest ``q`` to ``m`` maximises
+    ``q.m - |q|^2 / 2``, so the full distance matrix is never formed.
+    """
+    dots = query @ model.T
+    forward = (dots - 0.5 * (model * model).sum(axis=1)[None, :]).argmax(axis=1)
+    backward = (dots.T - 0.5 * (query * query).sum(axis=1)[None, :]).argmax(axis=1)
+    return forward, backward
 
 
 def mutual_nearest(query: np.ndarray, model: np.ndarray, min_mutual: int = 30) -> np.ndarray:
     """Index pairs (i, j) of feature nearest neighbours: the mutual ones when there are at
-    least ``min_mutual``, else every query's nearest."""
-    forward, is_mutual = _nearest_both_ways(query, model)
+    least ``min_mutual``, else the nearest in both directions (each query's nearest model
+    feature, and each model feature's nearest query), without repeats.
+
+    Both directions, because one direction alone can collapse: a "hub" feature near the middle
+    of the feature space can be every query's nearest, and pairs that all share one model
+    point fix no pose."""
+    forward, backward = _nearest_both_ways(query, model)
+    is_mutual = backward[forward] == np.arange(len(query))
     if is_mutual.sum() >= min_mutual:
         mutual = np.flatnonzero(is_mutual)
         return np.stack([mutual, forward[mutual]], axis=1)
-    return np.stack([np.arange(len(query)), forward], axis=1)
+    pairs = np.concatenate(
+        [
+            np.stack([np.arange(len(query)), forward], axis=1),
+            np.stack([backward, np.arange(len(model))], axis=1),
+        ]
+    )
+    return np.unique(pairs, axis=0)
 
 
 def mutual_count(query: np.ndarray, model: np.ndarray) -> int:
     """How many query features are their nearest model feature's nearest query feature."""
-    return int(_nearest_both_ways(query, model)[1].sum())
+    forward, backward = _nearest_both_ways(query, model)
+    return int((backward[forward] == np.arange(len(query))).sum())
 
 
 def point_cloud(points: np.ndarray, normal_radius: float | None = None) -> o3d.geometry.PointCloud:

@@ -9,13 +9,14 @@
 3. **shortlist**: the ``top_k`` library entries by global-descriptor similarity and size;
 4. **match + RANSAC**, per candidate: the ``keep_headings`` headings whose features agree
    best with the model's (most mutual nearest neighbours among a fixed subset of query key
-   points) get full mutual matching and the vectorised RANSAC (with the up prior when ``up`` is
-   given); all kept headings go on, since partial views of chairs are often nearly symmetric
-   front to back and inlier counts alone confuse the two;
-5. **ICP**: point-to-plane refinement of the query onto the candidate's surface, per kept
-   hypothesis;
-6. **score**: the share of query points the posed model explains, discounted by the RMSE; the
-   best candidate wins.
+   points) get full mutual matching and RANSAC. With ``up`` (and no scale) that is the
+   two-point search of :mod:`~catalign.registration.gravity`, which keeps several distinct
+   poses; otherwise the three-point :func:`~catalign.registration.ransac.ransac`, one pose;
+5. **verify**: every pose is scored by how much of the query it lays onto the candidate's
+   surface (:mod:`~catalign.registration.verification`), which tells a chair's front from its
+   back where inlier counts cannot;
+6. **ICP + score**: the ``refine`` best poses get point-to-plane ICP and are scored again the
+   same way; the best wins. Each candidate's score in the answer is that same measure.
 """
 
 from __future__ import annotations
@@ -23,27 +24,27 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import open3d as o3d
 
-from catalign.features.extractor import Described, FeatureExtractor
-from catalign.geometry.se3 import axis_angle, invert, rotation_between
+from catalign.errors import DegenerateInputError
+from catalign.features.extractor import FeatureExtractor
+from catalign.geometry.se3 import axis_angle, invert, make_pose
 from catalign.library.index import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
-from catalign.registration.alignment import (
-    alignment_score,
-    mutual_count,
-    mutual_nearest,
-    point_cloud,
-)
+from catalign.registration.alignment import mutual_count, mutual_nearest, point_cloud
 from catalign.registration.base import Candidate, RegistrationResult
-from catalign.registration.ransac import ransac
+from catalign.registration.gravity import leveller, yaw_ransac
+from catalign.registration.ransac import MODEL_UP, ransac
 from catalign.registration.validation import validate_cloud
+from catalign.registration.verification import CoverageCheck, SurfaceCheck
 
-MODEL_UP = np.array([0.0, 1.0, 0.0])
 reg = o3d.pipelines.registration
+_MODEL_UP = np.asarray(MODEL_UP)
+# A view spanning less of the model's height than this has lost its feet or its top.
+_FULL_HEIGHT_SHARE = 0.8
 
 
 @dataclass(frozen=True)
@@ -56,11 +57,18 @@ class QueryView:
 
 @dataclass(frozen=True)
 class Hypothesis:
+    """A model -> observation pose of one candidate, with the matches it came from."""
+
     model_id: str
     transform: np.ndarray
     matches: np.ndarray
     view: QueryView
-    num_inliers: int
+
+
+@dataclass(frozen=True)
+class Scored:
+    hypothesis: Hypothesis
+    score: float
 
 
 class Engine:
@@ -68,10 +76,12 @@ class Engine:
 
     Parameters: ``headings`` (1, or 8 for ``yaw-bin`` models), ``top_k`` default shortlist size
     (None: every entry), ``ransac_factor`` and ``icp_factor`` (inlier distances in voxels),
-    ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up``), ``min_points``
-    (occupied voxels a query needs), ``keep_headings`` (headings per candidate that go through
-    RANSAC and ICP), ``ransac_iterations`` (cap on hypotheses per RANSAC), ``probe_points``
-    (query key points used to rank headings).
+    ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up`` in the
+    three-point search), ``min_points`` (occupied voxels a query needs), ``keep_headings``
+    (headings per candidate that go through RANSAC), ``ransac_iterations`` (cap on draws per
+    RANSAC), ``poses_per_view`` (distinct poses the two-point search keeps per heading),
+    ``probe_points`` (query key points used to rank headings and to verify poses), ``refine``
+    (poses that get ICP).
     """
 
     def __init__(
@@ -87,7 +97,10 @@ class Engine:
         min_points: int = 50,
         keep_headings: int = 2,
         ransac_iterations: int = 5_000,
-        probe_points: int = 256,
+        poses_per_view: int = 8,
+        probe_points: int = 384,
+        refine: int = 3,
+        coverage_points: int = 1_500,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -99,8 +112,12 @@ class Engine:
         self.min_points = min_points
         self.keep_headings = keep_headings
         self.ransac_iterations = ransac_iterations
+        self.poses_per_view = poses_per_view
         self.probe_points = probe_points
+        self.refine = refine
+        self.coverage_points = coverage_points
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
+        self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
 
     def register(
         self,
@@ -117,116 +134,210 @@ class Engine:
             cloud = validate_cloud(
                 points, voxel_size=self.extractor.voxel_size, min_points=self.min_points
             )
-            up = None if up is None else np.asarray(up, dtype=np.float64)
+            turn = None if up is None else leveller(up)
 
         with _timed(timings, "features"):
-            views = self._describe(cloud, up)
-            query_cloud = point_cloud(views[0].keypoints)
+            views = self._describe(cloud, turn)
+            keypoints = views[0].keypoints
+            order = np.random.default_rng(seed).permutation(len(keypoints))
+            probes = keypoints[order[: self.probe_points]]
+            coverage = CoverageCheck(keypoints, margin=self.ransac_distance)
 
         with _timed(timings, "shortlist"):
-            candidates = self._shortlist(views, top_k if top_k is not None else self.top_k)
+            candidates = self._shortlist(views, top_k if top_k is not None else self.top_k, turn)
 
         with _timed(timings, "match_ransac"):
             hypotheses = [
                 hypothesis
                 for model_id in candidates
-                for hypothesis in self._hypotheses(model_id, views, up, estimate_scale, seed)
+                for view in self._consistent_views(model_id, views, order)
+                for hypothesis in self._hypotheses(model_id, view, turn, estimate_scale, seed)
             ]
 
+        with _timed(timings, "verify"):
+            scored = [Scored(h, self._score(h, probes, coverage)) for h in hypotheses]
+            scored.sort(key=lambda item: -item.score)
+
+        if not scored:
+            raise DegenerateInputError(
+                "no pose fits this cloud: its features matched no library model consistently "
+                "(is it a whole object, in metres?)"
+            )
         with _timed(timings, "icp_score"):
-            scored = [self._refine(h, query_cloud) for h in hypotheses]
-        hypothesis, _, refined, pose = max(scored, key=lambda item: item[1])
-        num_inliers = len(refined.correspondence_set)
+            query = point_cloud(keypoints)
+            refined = [
+                self._refine(item, query, probes, coverage) for item in scored[: self.refine]
+            ]
+            hypothesis = max(refined, key=lambda item: item.score).hypothesis
+            if turn is not None:
+                hypothesis = self._centre_on_height(hypothesis, keypoints @ turn[1], turn[1])
+            fit = self._fit(hypothesis, query)
+        num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
             model_id=hypothesis.model_id,
-            pose=pose,
-            fitness=float(refined.fitness),
-            inlier_rmse=float(refined.inlier_rmse),
+            pose=hypothesis.transform,
+            fitness=float(fit.fitness),
+            inlier_rmse=float(fit.inlier_rmse),
             num_inliers=num_inliers,
-            inlier_ratio=num_inliers / len(views[0].keypoints),
-            candidates=_best_per_model(scored),
+            inlier_ratio=num_inliers / len(keypoints),
+            candidates=_best_per_model(candidates, refined + scored[self.refine :]),
             timings_ms=timings,
             correspondences=(
                 hypothesis.view.keypoints[hypothesis.matches[:, 0]],
                 self.library[hypothesis.model_id].keypoints[hypothesis.matches[:, 1]],
             ),
-            scale=float(np.cbrt(np.linalg.det(pose[:3, :3]))),
+            scale=_scale_of(hypothesis.transform),
         )
 
-    def _describe(self, cloud: np.ndarray, up: np.ndarray | None) -> list[QueryView]:
+    def _describe(self, cloud: np.ndarray, turn: np.ndarray | None) -> list[QueryView]:
         """The query described at every heading, key points back in the observation frame."""
-        turn = np.eye(3) if up is None else rotation_between(up, MODEL_UP)
-        views = []
-        for k in range(self.headings):
-            rotation = axis_angle(MODEL_UP, -2 * np.pi * k / self.headings) @ turn
-            described: Described = self.extractor.describe(cloud @ rotation.T)
-            views.append(QueryView(described.keypoints @ rotation, described.features))
-        return views
+        turn = np.eye(3) if turn is None else turn
+        rotations = [
+            axis_angle(_MODEL_UP, -2 * np.pi * k / self.headings) @ turn
+            for k in range(self.headings)
+        ]
+        described = self.extractor.describe_many([cloud @ r.T for r in rotations])
+        return [
+            QueryView(d.keypoints @ r, d.features)
+            for d, r in zip(described, rotations, strict=True)
+        ]
 
-    def _shortlist(self, views: list[QueryView], k: int | None) -> list[str]:
+    def _shortlist(
+        self, views: list[QueryView], k: int | None, turn: np.ndarray | None
+    ) -> list[str]:
         ids = self.library.ids
         if k is None or k >= len(ids):
             return list(ids)
         size = np.ptp(views[0].keypoints, axis=0)
+        height = None if turn is None else float(np.ptp(views[0].keypoints @ turn[1]))
         scores = np.max(
-            [retrieval_scores(self.library, global_descriptor(v.features), size) for v in views],
+            [
+                retrieval_scores(self.library, global_descriptor(v.features), size, height)
+                for v in views
+            ],
             axis=0,
         )
         return [ids[i] for i in np.argsort(-scores, kind="stable")[:k]]
 
+    def _consistent_views(
+        self, model_id: str, views: list[QueryView], order: np.ndarray
+    ) -> list[QueryView]:
+        """The ``keep_headings`` headings whose features agree best with the model's."""
+        if len(views) <= self.keep_headings:
+            return views
+        features = self.library[model_id].features
+        probe = order[: self.probe_points]
+        # Headings voxelise differently, so their key point counts differ by a few.
+        agreement = [mutual_count(v.features[probe % len(v.features)], features) for v in views]
+        return [views[i] for i in np.argsort(agreement)[::-1][: self.keep_headings]]
+
     def _hypotheses(
         self,
         model_id: str,
-        views: list[QueryView],
-        up: np.ndarray | None,
+        view: QueryView,
+        turn: np.ndarray | None,
         estimate_scale: bool,
         seed: int,
     ) -> list[Hypothesis]:
-        """RANSAC hypotheses of one candidate at its ``keep_headings`` most consistent headings."""
+        """Poses of one candidate from the matches of one heading: several distinct ones from
+        the two-point search when gravity is known, else the three-point RANSAC's best."""
         entry = self.library[model_id]
-        if len(views) > self.keep_headings:
-            probe = np.random.default_rng(seed).permutation(len(views[0].features))
-            agreement = [
-                mutual_count(
-                    v.features[probe[: self.probe_points] % len(v.features)], entry.features
-                )
-                for v in views
-            ]
-            views = [views[i] for i in np.argsort(agreement)[::-1][: self.keep_headings]]
-        found = []
-        for view in views:
-            matches = mutual_nearest(view.features, entry.features)
-            result = ransac(
-                entry.keypoints[matches[:, 1]],
-                view.keypoints[matches[:, 0]],
+        matches = mutual_nearest(view.features, entry.features)
+        model_points = entry.keypoints[matches[:, 1]]
+        observed = view.keypoints[matches[:, 0]]
+        if turn is not None and not estimate_scale:
+            poses = yaw_ransac(
+                model_points,
+                observed @ turn.T,
                 self.ransac_distance,
                 seed=seed,
-                up=up,
-                up_tolerance_deg=self.up_tolerance_deg,
-                estimate_scale=estimate_scale,
-                iterations=self.ransac_iterations,
+                draws=self.ransac_iterations,
+                keep=self.poses_per_view,
             )
-            found.append(Hypothesis(model_id, result.transform, matches, view, result.num_inliers))
-        return found
+            unlevel = make_pose(turn.T, np.zeros(3))
+            return [
+                Hypothesis(model_id, unlevel @ make_pose(rotation, translation), matches, view)
+                for rotation, translation in zip(poses.rotations, poses.translations, strict=True)
+            ]
+        result = ransac(
+            model_points,
+            observed,
+            self.ransac_distance,
+            seed=seed,
+            up=None if turn is None else turn.T @ _MODEL_UP,
+            up_tolerance_deg=self.up_tolerance_deg,
+            estimate_scale=estimate_scale,
+            iterations=self.ransac_iterations,
+        )
+        return [Hypothesis(model_id, result.transform, matches, view)]
+
+    def _score(self, hypothesis: Hypothesis, probes: np.ndarray, coverage: CoverageCheck) -> float:
+        """How well a model -> observation pose fits: the share of the query it explains
+        (:class:`SurfaceCheck`) times the share of the model surface in the observed region
+        that the query covers (:class:`CoverageCheck`)."""
+        model_id = hypothesis.model_id
+        if model_id not in self._checks:
+            points = self.library[model_id].points
+            step = max(1, len(points) // self.coverage_points)
+            self._checks[model_id] = (SurfaceCheck(points), points[::step].astype(np.float64))
+        surface, sample = self._checks[model_id]
+        pose = hypothesis.transform[None]
+        explained = surface.explained(probes, pose, self.ransac_distance)[0]
+        return float(explained * coverage.covered(sample, pose, self.ransac_distance)[0])
 
     def _refine(
-        self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud
-    ) -> tuple[Hypothesis, float, reg.RegistrationResult, np.ndarray]:
-        """ICP of the query onto the (scaled) model surface; returns the score and the pose."""
-        scale = float(np.cbrt(np.linalg.det(hypothesis.transform[:3, :3])))
-        rigid = hypothesis.transform.copy()
-        rigid[:3, :3] /= scale
-        surface = self._surface(hypothesis.model_id, scale)
+        self,
+        item: Scored,
+        query: o3d.geometry.PointCloud,
+        probes: np.ndarray,
+        coverage: CoverageCheck,
+    ) -> Scored:
+        """Point-to-plane ICP of the query onto the (scaled) model surface, kept only when it
+        raises the score, so that refining never demotes a pose below unrefined ones."""
+        hypothesis = item.hypothesis
+        rigid, scale = _split_scale(hypothesis.transform)
         refined = reg.registration_icp(
             query,
-            surface,
+            self._surface(hypothesis.model_id, scale),
             self.icp_distance,
             invert(rigid),
             reg.TransformationEstimationPointToPlane(),
         )
         pose = invert(np.asarray(refined.transformation))
         pose[:3, :3] *= scale
-        return hypothesis, alignment_score(refined, self.ransac_distance), refined, pose
+        moved = replace(hypothesis, transform=pose)
+        score = self._score(moved, probes, coverage)
+        return Scored(moved, score) if score > item.score else item
+
+    def _centre_on_height(
+        self, hypothesis: Hypothesis, heights: np.ndarray, up: np.ndarray
+    ) -> Hypothesis:
+        """Shift the pose along ``up`` so the model spans the same heights as the observation.
+
+        A different instance never fits exactly: ICP lays its seat on the observed seat, but
+        the chair's frame (its bounding-box centre, the category-level pose) sits halfway up
+        whatever height the chair has. A view usually shows that whole height, feet to top of
+        the back; when it spans less than :data:`_FULL_HEIGHT_SHARE` of the model's height
+        (feet or top hidden), the fitted height is kept.
+        """
+        sample = self._checks[hypothesis.model_id][1]
+        posed = sample @ hypothesis.transform[:3, :3].T @ up + hypothesis.transform[:3, 3] @ up
+        observed_span, model_span = np.ptp(heights), np.ptp(posed)
+        if observed_span < _FULL_HEIGHT_SHARE * model_span:
+            return hypothesis
+        shift = (heights.max() + heights.min() - posed.max() - posed.min()) / 2
+        pose = hypothesis.transform.copy()
+        pose[:3, 3] += shift * up
+        return replace(hypothesis, transform=pose)
+
+    def _fit(
+        self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud
+    ) -> reg.RegistrationResult:
+        """Open3D's fitness and inlier RMSE of the query on the model under the final pose."""
+        rigid, scale = _split_scale(hypothesis.transform)
+        return reg.evaluate_registration(
+            query, self._surface(hypothesis.model_id, scale), self.icp_distance, invert(rigid)
+        )
 
     def _surface(self, model_id: str, scale: float) -> o3d.geometry.PointCloud:
         """The model's surface points with normals (cached), scaled when ``scale`` is not 1."""
@@ -243,11 +354,24 @@ class Engine:
         return scaled
 
 
-def _best_per_model(scored: list[tuple[Hypothesis, float, object, np.ndarray]]) -> list[Candidate]:
-    """Each candidate model once, with its best score, best first."""
-    best: dict[str, float] = {}
-    for hypothesis, score, _, _ in scored:
-        best[hypothesis.model_id] = max(score, best.get(hypothesis.model_id, -np.inf))
+def _scale_of(pose: np.ndarray) -> float:
+    return float(np.cbrt(np.linalg.det(pose[:3, :3])))
+
+
+def _split_scale(pose: np.ndarray) -> tuple[np.ndarray, float]:
+    """A similarity pose as its rigid part and its scale."""
+    scale = _scale_of(pose)
+    rigid = pose.copy()
+    rigid[:3, :3] /= scale
+    return rigid, scale
+
+
+def _best_per_model(model_ids: list[str], scored: list[Scored]) -> list[Candidate]:
+    """Each shortlisted model once, with its best score (0 when no pose was found), best first."""
+    best = dict.fromkeys(model_ids, 0.0)
+    for item in scored:
+        model_id = item.hypothesis.model_id
+        best[model_id] = max(item.score, best[model_id])
     return sorted((Candidate(i, s) for i, s in best.items()), key=lambda c: -c.score)
 
 

@@ -188,7 +188,7 @@ def ransac(
     # Work in centred coordinates: smaller numbers, so scoring by expanded squares stays exact.
     src_mean, dst_mean = src.mean(axis=0), dst.mean(axis=0)
     x, y = src - src_mean, dst - dst_mean
-    features = _score_features(x, y)
+    features = residual_terms(x, y)
     rng = np.random.default_rng(seed)
     n = len(x)
     best_count, best = max(min_inliers, 3) - 1, None
@@ -211,12 +211,12 @@ def ransac(
         if not keep.any():
             continue
         scale, rotation, translation = scale[keep], rotation[keep], translation[keep]
-        counts = _count_inliers(features, scale, rotation, translation, inlier_distance)
+        counts = count_inliers(features, scale, rotation, translation, inlier_distance)
         top = int(np.argmax(counts))
         if counts[top] > best_count:
             best_count = int(counts[top])
             best = (float(scale[top]), rotation[top], translation[top])
-            needed = _iterations_needed(best_count / n, confidence)
+            needed = iterations_needed(best_count / n, confidence)
 
     if best is None:
         return RansacResult(np.eye(4), np.zeros(n, dtype=bool), 0, drawn)
@@ -307,8 +307,8 @@ def _plausible_triplets(
     return keep
 
 
-def _score_features(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(N,18) terms of ``|s R x + t - y|^2`` per correspondence (see ``_count_inliers``)."""
+def residual_terms(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(N,18) terms of ``|s R x + t - y|^2`` per correspondence (see ``count_inliers``)."""
     outer = (y[:, :, None] * x[:, None, :]).reshape(len(x), 9)  # y_i x_j at 3i+j
     ones = np.ones((len(x), 1))
     return np.hstack(
@@ -316,7 +316,7 @@ def _score_features(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     )
 
 
-def _count_inliers(
+def count_inliers(
     features: np.ndarray,
     scale: np.ndarray,
     rotation: np.ndarray,
@@ -348,9 +348,9 @@ def _residuals(
     return np.linalg.norm(scale * x @ rotation.T + translation - y, axis=1)
 
 
-def _iterations_needed(inlier_ratio: float, confidence: float) -> int:
-    """Draws for ``confidence`` of at least one all-inlier triplet: log(1-p) / log(1-w^3)."""
-    all_inliers = inlier_ratio**3
+def iterations_needed(inlier_ratio: float, confidence: float, sample_size: int = 3) -> int:
+    """Draws for ``confidence`` of at least one all-inlier sample: log(1-p) / log(1-w^k)."""
+    all_inliers = inlier_ratio**sample_size
     if all_inliers >= 1.0:
         return 1
     if all_inliers <= 0.0:

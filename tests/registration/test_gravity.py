@@ -1,0 +1,117 @@
+"""Two-point pose search under gravity and the surface check that ranks its poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from catalign.errors import InvalidInputError
+from catalign.geometry.se3 import axis_angle, rotation_error_deg
+from catalign.registration.gravity import (
+    leveller,
+    plausible_pairs,
+    two_point_poses,
+    yaw_ransac,
+    yaw_rotations,
+)
+from catalign.registration.verification import SurfaceCheck
+
+UP = np.array([0.0, 1.0, 0.0])
+
+
+def _yaw_pose(yaw: float, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return axis_angle(UP, yaw), translation
+
+
+def test_yaw_rotations_turn_about_plus_y() -> None:
+    for yaw in (-2.0, 0.3, 3.0):
+        assert np.allclose(yaw_rotations(np.array([yaw]))[0], axis_angle(UP, yaw))
+
+
+def test_two_matches_fix_yaw_and_translation_exactly() -> None:
+    rng = np.random.default_rng(0)
+    rotation, translation = _yaw_pose(1.2, np.array([0.3, -0.1, 2.0]))
+    src = rng.uniform(-0.5, 0.5, (20, 2, 3))
+    dst = src @ rotation.T + translation
+    yaws, translations = two_point_poses(src, dst)
+    assert np.allclose(yaw_rotations(yaws), rotation, atol=1e-9)
+    assert np.allclose(translations, translation, atol=1e-9)
+
+
+def test_pairs_that_a_turn_about_up_cannot_explain_are_refused() -> None:
+    src = np.array([[[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]] * 3)
+    dst = src.copy()
+    dst[1, 1, 1] = 0.2  # height difference changed: no yaw explains it
+    dst[2, 1, 0] = 0.8  # horizontal length changed
+    assert plausible_pairs(src, dst, 0.05, 0.15).tolist() == [True, False, False]
+    # too close horizontally for the noise not to decide the yaw
+    assert not plausible_pairs(src * 0.2, dst[:1] * 0.2, 0.05, 0.15)[0]
+
+
+def test_yaw_ransac_finds_the_pose_among_mostly_wrong_matches() -> None:
+    rng = np.random.default_rng(1)
+    rotation, translation = _yaw_pose(-2.3, np.array([1.0, 0.2, -0.4]))
+    model = rng.uniform(-0.4, 0.4, (600, 3))
+    observed = model @ rotation.T + translation + rng.normal(0, 0.005, model.shape)
+    wrong = rng.random(len(model)) < 0.92  # 8% correct matches, as cross-instance features give
+    observed[wrong] = rng.permutation(observed[wrong])
+    poses = yaw_ransac(model, observed, 0.05, seed=0, draws=2_000, keep=4)
+    assert rotation_error_deg(poses.rotations[0], rotation) < 2.0
+    assert np.linalg.norm(poses.translations[0] - translation) < 0.02
+    assert poses.inliers[0] >= 0.07 * len(model)
+    assert list(poses.inliers) == sorted(poses.inliers, reverse=True)
+    # the kept poses are distinct from each other
+    turns = np.degrees(np.abs(np.angle(np.exp(1j * (poses.yaws[1:] - poses.yaws[0])))))
+    shifts = np.linalg.norm(poses.translations[1:] - poses.translations[0], axis=1)
+    assert np.all((turns > 15.0) | (shifts > 0.1))
+
+
+def test_yaw_ransac_is_deterministic_and_empty_without_plausible_pairs() -> None:
+    rng = np.random.default_rng(2)
+    src = rng.uniform(-0.5, 0.5, (100, 3))
+    dst = rng.uniform(-0.5, 0.5, (100, 3))
+    first = yaw_ransac(src, dst, 0.05, seed=3)
+    again = yaw_ransac(src, dst, 0.05, seed=3)
+    assert np.array_equal(first.yaws, again.yaws)
+    assert len(yaw_ransac(src[:1], dst[:1], 0.05, seed=0)) == 0
+    collapsed = np.zeros((10, 3))
+    assert len(yaw_ransac(collapsed, collapsed, 0.05, seed=0)) == 0
+    with pytest.raises(InvalidInputError, match="inlier_distance"):
+        yaw_ransac(src, dst, 0.0, seed=0)
+
+
+def test_leveller_turns_up_onto_plus_y() -> None:
+    for up in ([0, 0, 1.0], [0, -1.0, 0], [0.3, 0.4, -0.2]):
+        up = np.asarray(up)
+        assert np.allclose(leveller(up) @ (up / np.linalg.norm(up)), UP)
+    with pytest.raises(InvalidInputError, match="up"):
+        leveller(np.zeros(3))
+
+
+def test_surface_check_matches_a_brute_force_reference() -> None:
+    rng = np.random.default_rng(4)
+    surface = rng.uniform(-0.5, 0.5, (2_000, 3))
+    probes = rng.uniform(-0.6, 0.6, (100, 3))
+    poses = np.stack([np.eye(4)] * 3)
+    poses[1, :3, :3] = axis_angle(np.array([0.2, 1.0, 0.3]), 0.8)
+    poses[1, :3, 3] = [0.1, 0.0, -0.2]
+    poses[2, :3, :3] *= 1.3  # a similarity pose
+    scores = SurfaceCheck(surface).explained(probes, poses, 0.05)
+    for pose, score in zip(poses, scores, strict=True):
+        local = (probes - pose[:3, 3]) @ np.linalg.inv(pose[:3, :3]).T
+        gaps = np.linalg.norm(local[:, None] - surface[None], axis=2).min(axis=1)
+        expected = np.clip(1 - (gaps / 0.05) ** 2, 0, None).mean()
+        assert score == pytest.approx(expected, abs=1e-12)
+
+
+def test_surface_check_prefers_the_true_pose() -> None:
+    rng = np.random.default_rng(5)
+    surface = rng.uniform(-0.5, 0.5, (3_000, 3)) * [1.0, 0.1, 0.4]  # a flat, oblong slab
+    pose = np.eye(4)
+    pose[:3, :3] = axis_angle(UP, 0.9)
+    pose[:3, 3] = [0.5, 0.0, 0.2]
+    probes = surface[:300] @ pose[:3, :3].T + pose[:3, 3]
+    wrong = pose.copy()
+    wrong[:3, :3] = axis_angle(UP, 0.9 + np.pi / 2)
+    scores = SurfaceCheck(surface).explained(probes, np.stack([pose, wrong]), 0.05)
+    assert scores[0] > 0.9 and scores[1] < 0.6
