@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -41,6 +43,7 @@ def test_added_and_removed_models_are_served_and_persist(
         assert added.status_code == 201, added.text
         model = added.json()
         assert model["model_id"] == "chair-7" and model["units"] == "m"
+        assert model["source"] == "upload:chair seven.ply"  # not the temporary file
         extent = np.ptp(procedural_shape(7).mesh.vertices, axis=0)
         np.testing.assert_allclose(model["size"], extent, atol=1e-5)
 
@@ -79,3 +82,21 @@ def test_added_and_removed_models_are_served_and_persist(
         assert ids == ["chair-7", "proc-0000", "proc-0001"]
         assert http.get("/models/chair-7").json()["num_points"] > 0
         assert http.get("/models/proc-0002").status_code == 404
+
+
+def test_changes_by_another_process_are_served_without_a_restart(
+    serve: Callable, library_copy: Path, model_dir: Path, tmp_path: Path
+) -> None:
+    source = tmp_path / "chair-9.ply"
+    source.write_bytes(_ply_of_chair(9))
+    with (
+        serve(library=library_copy, warmup=False) as server,
+        httpx.Client(base_url=server.url, timeout=120) as http,
+    ):
+        assert "chair-9" not in {m["model_id"] for m in http.get("/models").json()["models"]}
+        cli = Path(sys.executable).with_name("catalign")  # the console script beside python
+        command = [str(cli), "library", "add", str(library_copy)]
+        subprocess.run([*command, str(source), "--model-dir", str(model_dir)], check=True)
+        listed = http.get("/models").json()
+        assert "chair-9" in {m["model_id"] for m in listed["models"]} and listed["count"] == 4
+        assert http.get("/models/chair-9").status_code == 200

@@ -150,6 +150,18 @@ def test_build_add_remove_reload_round_trip(files, tmp_path, extractor):
         lib["a"]
 
 
+def test_an_added_file_can_be_recorded_under_another_name(files, tmp_path, extractor):
+    out = tmp_path / "lib"
+    build([files.cloud("a.npy", 1)], out, extractor, progress=False)
+    path = files.cloud("tmp123.npy", 2)
+    add(out, [path], extractor, ids=["c"], progress=False, source_name="upload:chair.npy")
+    lib = load(out, extractor.fingerprint)
+    assert lib["c"].source == "upload:chair.npy" and lib["a"].source == str(files.root / "a.npy")
+    with pytest.raises(InvalidInputError, match="one file"):
+        add(out, [files.cloud("d.npy", 3), files.cloud("e.npy", 4)], extractor, source_name="x")
+    assert load(out, extractor.fingerprint).ids == ["a", "c"]
+
+
 def test_adding_an_existing_id_without_replace_changes_nothing(
     files, tmp_path, extractor, snapshot
 ):

@@ -76,6 +76,21 @@ def test_a_query_larger_than_a_model_is_demoted():
     )
 
 
+def test_with_gravity_a_model_of_another_height_is_demoted():
+    lib = synthetic_library(
+        descriptors=np.array([[1.0, 0.0], [0.95, 0.05], [0.9, 0.1]]),
+        sizes=np.array([[0.5, 1.2, 0.5], [0.5, 0.9, 0.5], [0.5, 0.7, 0.5]]),  # heights along +Y
+    )
+    query = np.array([1.0, 0.0])
+    without = retrieval_scores(lib, query, None)
+    with_height = retrieval_scores(lib, query, None, query_height=0.9)
+    assert np.argmax(without) == 0 and np.argmax(with_height) == 1
+    # a view taller than the model costs twice what a shorter one (feet hidden) does
+    penalty = without - with_height
+    assert penalty[1] == pytest.approx(0.0)
+    assert penalty[2] / (0.2 / 0.7) == pytest.approx(2 * penalty[0] / (0.3 / 1.2))
+
+
 def test_shortlist_arguments():
     lib = synthetic_library(np.eye(3), np.ones((3, 3)))
     with pytest.raises(InvalidInputError, match="at least 1"):

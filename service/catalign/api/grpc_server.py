@@ -90,7 +90,7 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                     bbox_max=e.bbox_max.tolist(),
                     size=e.size.tolist(),
                 )
-                for e in self.service.models()
+                for e in await self.service.models()
             ]
             return catalign_pb2.ListModelsReply(count=len(models), models=models)
 

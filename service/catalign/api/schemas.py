@@ -119,7 +119,9 @@ class ModelPublic(BaseModel):
     """One library model as callers see it."""
 
     model_id: str
-    source: str = Field(description="The file it was built from, or procedural:<seed>.")
+    source: str = Field(
+        description="The file it was built from, upload:<file name>, or procedural:<seed>."
+    )
     units: str = Field(description="Units the source was declared in (stored in metres).")
     num_points: int
     bbox_min: Vec3

@@ -4,8 +4,10 @@
 on the bounded :class:`~catalign.api.pool.WorkPool`, and serialises library changes: each change
 is written with :mod:`catalign.library` (atomic on disk), the library is loaded again and a new
 :class:`~catalign.registration.engine.Engine` replaces the old one in a single assignment, so
-requests already running finish on the library they started with. torch and open3d are imported
-only when the service loads, never by the HTTP layer itself.
+requests already running finish on the library they started with. Changes made by another
+process (``catalign library add`` on the served folder) are noticed by the manifest's file stamp
+and loaded before the next request that reads the library. torch and open3d are imported only
+when the service loads, never by the HTTP layer itself.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class RegistrationService:
         self._engine: Engine | None = None
         self._pool: WorkPool | None = None
         self._changes = asyncio.Lock()
+        self._stamp: tuple[int, int, int] | None = None
 
     # life cycle -------------------------------------------------------------------------------
 
@@ -100,6 +103,7 @@ class RegistrationService:
 
     async def register(self, query: PointQuery) -> RegistrationResult:
         """Register a query on a worker; timings gain ``queue``, ``read`` (files) and ``total``."""
+        await self.refresh()
         engine = self.engine
         if len(engine.library) == 0:
             raise EmptyLibraryError("the library has no models; add one with POST /models")
@@ -108,12 +112,37 @@ class RegistrationService:
         self.metrics.observe_registration(result.timings_ms, result.inlier_ratio)
         return result
 
-    def model(self, model_id: str) -> LibraryEntry:
+    async def model(self, model_id: str) -> LibraryEntry:
+        await self.refresh()
         return self.library[model_id]
 
-    def models(self) -> list[LibraryEntry]:
+    async def models(self) -> list[LibraryEntry]:
+        await self.refresh()
         library = self.library
         return [library[i] for i in library.ids]
+
+    async def refresh(self) -> None:
+        """Load the library again when another process changed it since it was loaded.
+
+        A library that no longer loads (rebuilt with other weights, say) is logged and the one
+        in memory stays served: a bad edit on disk must not take the service down.
+        """
+        if self._stamp == self._manifest_stamp():
+            return
+        async with self._changes:
+            stamp = self._manifest_stamp()
+            if stamp == self._stamp:
+                return
+            engine = self.engine
+            try:
+                library = await self.pool.run(self._reload, engine.extractor)
+            except CatalignError as error:
+                logger.warning("library changed on disk but cannot be loaded: %s", error)
+                self._stamp = stamp
+                return
+            self._engine = self._make_engine(engine.extractor, library)
+            self.metrics.library_models.set(len(library))
+            logger.info("library changed on disk: now %d models", len(library))
 
     def info(self) -> InfoResponse:
         import open3d
@@ -187,6 +216,7 @@ class RegistrationService:
             engine = self.engine
             check(engine.library)
             library = await self.pool.run(change, engine.extractor, *args)
+            self._stamp = self._manifest_stamp()
             self._engine = self._make_engine(engine.extractor, library)
             self.metrics.library_models.set(len(library))
             return library
@@ -199,6 +229,7 @@ class RegistrationService:
 
         started = time.perf_counter()
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.torch_threads)
+        self._stamp = self._manifest_stamp()
         library = load(self.settings.library, extractor.fingerprint)
         self._engine = self._make_engine(extractor, library)
         self.metrics.library_models.set(len(library))
@@ -209,6 +240,19 @@ class RegistrationService:
             self.settings.library,
             time.perf_counter() - started,
         )
+
+    def _reload(self, extractor: LearnedExtractor) -> Library:
+        from catalign.library.index import load
+
+        return load(self.settings.library, extractor.fingerprint)
+
+    def _manifest_stamp(self) -> tuple[int, int, int] | None:
+        """What tells a rewritten manifest apart (it is replaced by rename, so the inode too)."""
+        try:
+            stat = (self.settings.library / "manifest.json").stat()
+        except OSError:
+            return None
+        return stat.st_mtime_ns, stat.st_size, stat.st_ino
 
     def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
         from catalign.registration.engine import Engine
@@ -253,7 +297,7 @@ class RegistrationService:
     ) -> Library:
         from catalign.library.index import add, load
 
-        # The entry records its source path: name the spooled file after the model at least.
+        # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
         with _shown_as(source, upload.filename):
             add(
@@ -263,6 +307,7 @@ class RegistrationService:
                 ids=[model_id],
                 units=units,
                 progress=False,
+                source_name=f"upload:{upload.filename}",
             )
         logger.info("added model %s to %s", model_id, self.settings.library)
         return load(self.settings.library, extractor.fingerprint)

@@ -135,14 +135,16 @@ def describe_file(
     extractor: FeatureExtractor,
     units: str = "m",
     num_points: int = SURFACE_POINTS,
+    source_name: str | None = None,
 ) -> LibraryEntry:
-    """Read and describe one shape file (source recorded as its absolute path)."""
+    """Read and describe one shape file; the source is recorded as ``source_name`` when given
+    (an upload's original name), else as the file's absolute path."""
     shape = read_shape(source.path)
     return describe_shape(
         source.model_id,
         shape,
         extractor,
-        source=str(source.path.resolve()),
+        source=source_name or str(source.path.resolve()),
         source_sha256=file_sha256(source.path),
         units=units,
         num_points=num_points,

@@ -184,18 +184,26 @@ def add(
     replace: bool = False,
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
+    source_name: str | None = None,
 ) -> Manifest:
     """Add entries to an existing library, or with ``replace`` replace those whose id exists.
 
     Adding an id the library already holds without ``replace`` raises InvalidInputError and
-    changes nothing.
+    changes nothing. ``source_name`` is recorded as the source of a single added file instead
+    of its path (the service names uploads so, not by their temporary files).
     """
     library_dir = Path(library_dir)
     unit_factor(units)
     found = collect_sources(sources, ids)
+    if source_name is not None and len(found) != 1:
+        raise InvalidInputError(f"source_name names one file, but {len(found)} were given")
     read_manifest(library_dir)  # no library: fail before the lock creates any file
     jobs = [
-        _Job(s.model_id, str(s.path), partial(describe_file, s, extractor, units, num_points))
+        _Job(
+            s.model_id,
+            str(s.path),
+            partial(describe_file, s, extractor, units, num_points, source_name),
+        )
         for s in found
     ]
     return _write(library_dir, extractor, jobs, fresh=False, replace=replace, progress=progress)

@@ -7,16 +7,22 @@
    it once per heading (a model trained on ``yaw-bin`` rotations sees the query at 8 headings
    45 degrees apart; any other model at one);
 3. **shortlist**: the ``top_k`` library entries by global-descriptor similarity and size;
-4. **match + RANSAC**, per candidate: the ``keep_headings`` headings whose features agree
-   best with the model's (most mutual nearest neighbours among a fixed subset of query key
-   points) get full mutual matching and RANSAC. With ``up`` (and no scale) that is the
+4. **match + RANSAC**: the ``keep_headings`` headings whose features agree best with the
+   leading candidates' (most mutual nearest neighbours among a fixed subset of query key
+   points; models share the canonical orientation, so one choice serves all) get full mutual
+   matching and RANSAC against every candidate. With ``up`` (and no scale) that is the
    two-point search of :mod:`~catalign.registration.gravity`, which keeps several distinct
    poses; otherwise the three-point :func:`~catalign.registration.ransac.ransac`, one pose;
 5. **verify**: every pose is scored by how much of the query it lays onto the candidate's
-   surface (:mod:`~catalign.registration.verification`), which tells a chair's front from its
+   surface, times how much of that surface in the observed region the query covers
+   (:mod:`~catalign.registration.verification`), which tells a chair's front from its
    back where inlier counts cannot;
 6. **ICP + score**: the ``refine`` best poses get point-to-plane ICP and are scored again the
-   same way; the best wins. Each candidate's score in the answer is that same measure.
+   same way; the best wins. Each candidate's score in the answer is that same measure. With
+   ``up``, the winner is fitted once more against the model scaled to the observed height and
+   centred on the observed height span, the pose staying rigid: for another instance of the
+   category that puts the model's frame (its bounding-box centre) where the observed chair's
+   is, rather than hugging one side of it.
 """
 
 from __future__ import annotations
@@ -45,6 +51,8 @@ reg = o3d.pipelines.registration
 _MODEL_UP = np.asarray(MODEL_UP)
 # A view spanning less of the model's height than this has lost its feet or its top.
 _FULL_HEIGHT_SHARE = 0.8
+# Sizes of another instance, relative to the model, that the final fit considers.
+_SIZE_RANGE = (0.8, 1.25)
 
 
 @dataclass(frozen=True)
@@ -78,10 +86,12 @@ class Engine:
     (None: every entry), ``ransac_factor`` and ``icp_factor`` (inlier distances in voxels),
     ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up`` in the
     three-point search), ``min_points`` (occupied voxels a query needs), ``keep_headings``
-    (headings per candidate that go through RANSAC), ``ransac_iterations`` (cap on draws per
-    RANSAC), ``poses_per_view`` (distinct poses the two-point search keeps per heading),
-    ``probe_points`` (query key points used to rank headings and to verify poses), ``refine``
-    (poses that get ICP).
+    (headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
+    models), ``ransac_iterations`` (cap on draws of the three-point RANSAC), ``pair_draws``
+    (pairs the two-point search draws), ``poses_per_view`` (distinct poses it keeps per
+    heading), ``probe_points`` (query key points used to rank headings and to verify poses),
+    ``coverage_points`` (model surface points for the coverage check), ``refine`` (poses that
+    get ICP).
     """
 
     def __init__(
@@ -101,6 +111,8 @@ class Engine:
         probe_points: int = 384,
         refine: int = 3,
         coverage_points: int = 1_500,
+        pair_draws: int = 1_000,
+        heading_models: int = 3,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -116,6 +128,8 @@ class Engine:
         self.probe_points = probe_points
         self.refine = refine
         self.coverage_points = coverage_points
+        self.pair_draws = pair_draws
+        self.heading_models = heading_models
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
 
@@ -147,10 +161,11 @@ class Engine:
             candidates = self._shortlist(views, top_k if top_k is not None else self.top_k, turn)
 
         with _timed(timings, "match_ransac"):
+            kept = self._consistent_views(candidates[: self.heading_models], views, order)
             hypotheses = [
                 hypothesis
                 for model_id in candidates
-                for view in self._consistent_views(model_id, views, order)
+                for view in kept
                 for hypothesis in self._hypotheses(model_id, view, turn, estimate_scale, seed)
             ]
 
@@ -169,8 +184,10 @@ class Engine:
                 self._refine(item, query, probes, coverage) for item in scored[: self.refine]
             ]
             hypothesis = max(refined, key=lambda item: item.score).hypothesis
-            if turn is not None:
-                hypothesis = self._centre_on_height(hypothesis, keypoints @ turn[1], turn[1])
+            if turn is not None and not estimate_scale:
+                heights = keypoints @ turn[1]
+                hypothesis = self._fit_at_observed_size(hypothesis, query, np.ptp(heights))
+                hypothesis = self._centre_on_height(hypothesis, heights, turn[1])
             fit = self._fit(hypothesis, query)
         num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
@@ -220,15 +237,25 @@ class Engine:
         return [ids[i] for i in np.argsort(-scores, kind="stable")[:k]]
 
     def _consistent_views(
-        self, model_id: str, views: list[QueryView], order: np.ndarray
+        self, model_ids: list[str], views: list[QueryView], order: np.ndarray
     ) -> list[QueryView]:
-        """The ``keep_headings`` headings whose features agree best with the model's."""
+        """The ``keep_headings`` headings whose features agree best with these models'.
+
+        Library models share the category's canonical orientation, so the heading at which the
+        query looks canonical is one for all of them: it is found once, on the best
+        shortlisted models, instead of once per candidate.
+        """
         if len(views) <= self.keep_headings:
             return views
-        features = self.library[model_id].features
         probe = order[: self.probe_points]
         # Headings voxelise differently, so their key point counts differ by a few.
-        agreement = [mutual_count(v.features[probe % len(v.features)], features) for v in views]
+        agreement = [
+            sum(
+                mutual_count(v.features[probe % len(v.features)], self.library[i].features)
+                for i in model_ids
+            )
+            for v in views
+        ]
         return [views[i] for i in np.argsort(agreement)[::-1][: self.keep_headings]]
 
     def _hypotheses(
@@ -251,7 +278,7 @@ class Engine:
                 observed @ turn.T,
                 self.ransac_distance,
                 seed=seed,
-                draws=self.ransac_iterations,
+                draws=self.pair_draws,
                 keep=self.poses_per_view,
             )
             unlevel = make_pose(turn.T, np.zeros(3))
@@ -308,6 +335,36 @@ class Engine:
         moved = replace(hypothesis, transform=pose)
         score = self._score(moved, probes, coverage)
         return Scored(moved, score) if score > item.score else item
+
+    def _fit_at_observed_size(
+        self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud, observed_height: float
+    ) -> Hypothesis:
+        """ICP once more against the model scaled about its centre to the observed height,
+        keeping the rigid pose that puts the (unscaled) centre where the scaled fit put it.
+
+        Another instance of the category is rarely the observed chair's size, and a rigid fit
+        of a smaller model hugs one side of the observation, pulling its centre off the
+        chair's. The pose stays rigid: only the search uses the scale (within
+        :data:`_SIZE_RANGE`).
+        """
+        entry = self.library[hypothesis.model_id]
+        scale = float(np.clip(observed_height / entry.size[1], *_SIZE_RANGE))
+        if abs(scale - 1.0) < 0.02:
+            return hypothesis
+        centre = (entry.bbox_min + entry.bbox_max) / 2
+        rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
+        # x = R (s p + (1 - s) c) + t = R y + t_s for y = s p on the origin-scaled surface
+        start = make_pose(rotation, translation + (1 - scale) * rotation @ centre)
+        refined = reg.registration_icp(
+            query,
+            self._surface(hypothesis.model_id, scale),
+            self.icp_distance,
+            invert(start),
+            reg.TransformationEstimationPointToPlane(),
+        )
+        fitted = invert(np.asarray(refined.transformation))
+        fitted[:3, 3] -= (1 - scale) * fitted[:3, :3] @ centre
+        return replace(hypothesis, transform=fitted)
 
     def _centre_on_height(
         self, hypothesis: Hypothesis, heights: np.ndarray, up: np.ndarray

@@ -64,7 +64,7 @@ _UPLOAD_BODY = {
 @router.get("", response_model=ModelList, responses=error_responses(401))
 async def list_models(service: ServiceDep) -> ModelList:
     """Every model of the library being served, sorted by id."""
-    models = [ModelPublic.from_entry(e) for e in service.models()]
+    models = [ModelPublic.from_entry(e) for e in await service.models()]
     return ModelList(count=len(models), models=models)
 
 
@@ -73,7 +73,7 @@ async def list_models(service: ServiceDep) -> ModelList:
 )
 async def get_model(model_id: ModelId, service: ServiceDep) -> ModelPublic:
     """One model of the library."""
-    return ModelPublic.from_entry(service.model(model_id))
+    return ModelPublic.from_entry(await service.model(model_id))
 
 
 @router.post(
