@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample, voxel_keys
+from catalign.geometry.sampling import (
+    sample_surface,
+    subsample,
+    voxel_downsample,
+    voxel_grid,
+    voxel_keys,
+)
 
 
 def test_samples_lie_on_the_mesh(rng):
@@ -118,3 +124,15 @@ def test_subsample_is_seeded():
     a = subsample(points, 50, np.random.default_rng(5))
     b = subsample(points, 50, np.random.default_rng(5))
     np.testing.assert_array_equal(a, b)
+
+
+def test_voxel_grid_matches_row_wise_unique_near_and_far(rng):
+    """Packed keys (the fast path) and rows (far-apart coordinates) give np.unique's answer."""
+    for scale in (1.0, 1e17):
+        points = rng.uniform(-1, 1, size=(3000, 3)) * [1.0, 2.0, 0.5]
+        points[:10] *= scale
+        keys, centroids, inverse = voxel_grid(points, 0.1)
+        expected, expected_inverse = np.unique(voxel_keys(points, 0.1), axis=0, return_inverse=True)
+        np.testing.assert_array_equal(keys, expected)
+        np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+        np.testing.assert_allclose(centroids[inverse[20]], points[inverse == inverse[20]].mean(0))

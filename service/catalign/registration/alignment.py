@@ -16,13 +16,14 @@ reg = o3d.pipelines.registration
 def _nearest_both_ways(query: np.ndarray, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each query's nearest model feature, and each model feature's nearest query feature.
 
-    L2 by one matrix product (far faster than KD-trees in 32 dimensions): the nearest ``m`` to
-    ``q`` maximises ``q.m - |m|^2 / 2``, and the nearest ``q`` to ``m`` maximises
-    ``q.m - |q|^2 / 2``, so the full distance matrix is never formed.
+    L2 by matrix products (far faster than KD-trees in 32 dimensions): the nearest ``m`` to
+    ``q`` maximises ``q.m - |m|^2 / 2`` and the nearest ``q`` to ``m`` maximises
+    ``q.m - |q|^2 / 2``, so no distance matrix is formed. Each direction gets its own product,
+    laid out so that its arg-max runs along rows: a column-wise arg-max over the transpose of
+    one shared product measured twice as slow.
     """
-    dots = query @ model.T
-    forward = (dots - 0.5 * (model * model).sum(axis=1)[None, :]).argmax(axis=1)
-    backward = (dots.T - 0.5 * (query * query).sum(axis=1)[None, :]).argmax(axis=1)
+    forward = (query @ model.T - 0.5 * (model * model).sum(axis=1)[None, :]).argmax(axis=1)
+    backward = (model @ query.T - 0.5 * (query * query).sum(axis=1)[None, :]).argmax(axis=1)
     return forward, backward
 
 

@@ -14,11 +14,12 @@
    two-point search of :mod:`~catalign.registration.gravity`, which keeps several distinct
    poses; otherwise the three-point :func:`~catalign.registration.ransac.ransac`, one pose;
 5. **verify**: every pose is scored by how much of the query it lays onto the candidate's
-   surface, times how much of that surface in the observed region the query covers
-   (:mod:`~catalign.registration.verification`), which tells a chair's front from its
-   back where inlier counts cannot;
+   surface, and the ``verify_top`` best also by how much of that surface in the observed
+   region the query covers (:mod:`~catalign.registration.verification`); their product tells
+   a chair's front from its side and back where inlier counts cannot;
 6. **ICP + score**: the ``refine`` best poses get point-to-plane ICP and are scored again the
-   same way; the best wins. Each candidate's score in the answer is that same measure. With
+   same way; the best of them wins. Each candidate's score in the answer is that same measure
+   (after ICP for the refined poses). With
    ``up``, the winner is fitted once more against the model scaled to the observed height and
    centred on the observed height span, the pose staying rigid: for another instance of the
    category that puts the model's frame (its bounding-box centre) where the observed chair's
@@ -51,6 +52,8 @@ reg = o3d.pipelines.registration
 _MODEL_UP = np.asarray(MODEL_UP)
 # A view spanning less of the model's height than this has lost its feet or its top.
 _FULL_HEIGHT_SHARE = 0.8
+# ICP distances, in multiples of ``icp_distance``: coarse first, then fine.
+_ICP_SCHEDULE = (3.0, 1.0)
 # Sizes of another instance, relative to the model, that the final fit considers.
 _SIZE_RANGE = (0.8, 1.25)
 
@@ -90,8 +93,9 @@ class Engine:
     models), ``ransac_iterations`` (cap on draws of the three-point RANSAC), ``pair_draws``
     (pairs the two-point search draws), ``poses_per_view`` (distinct poses it keeps per
     heading), ``probe_points`` (query key points used to rank headings and to verify poses),
-    ``coverage_points`` (model surface points for the coverage check), ``refine`` (poses that
-    get ICP).
+    ``coverage_points`` (model surface points for the coverage check), ``match_points`` (query
+    key points that take part in matching), ``verify_top`` (poses, best by the surface check,
+    that get the coverage check), ``refine`` (poses that get ICP).
     """
 
     def __init__(
@@ -105,14 +109,16 @@ class Engine:
         icp_factor: float = 1.0,
         up_tolerance_deg: float = 30.0,
         min_points: int = 50,
-        keep_headings: int = 2,
+        keep_headings: int = 3,
         ransac_iterations: int = 5_000,
         poses_per_view: int = 8,
         probe_points: int = 384,
         refine: int = 3,
         coverage_points: int = 1_500,
-        pair_draws: int = 1_000,
-        heading_models: int = 3,
+        pair_draws: int = 3_000,
+        heading_models: int = 10,
+        match_points: int = 1_000,
+        verify_top: int = 32,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -130,6 +136,8 @@ class Engine:
         self.coverage_points = coverage_points
         self.pair_draws = pair_draws
         self.heading_models = heading_models
+        self.match_points = match_points
+        self.verify_top = verify_top
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
 
@@ -170,7 +178,13 @@ class Engine:
             ]
 
         with _timed(timings, "verify"):
-            scored = [Scored(h, self._score(h, probes, coverage)) for h in hypotheses]
+            # The surface check is cheap: every pose gets it; the coverage check only the best.
+            explained = [self._explained(h, probes) for h in hypotheses]
+            best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
+            scored = [
+                Scored(h, explained[i] * self._covered(h, coverage))
+                for i, h in ((i, hypotheses[i]) for i in best_first)
+            ]
             scored.sort(key=lambda item: -item.score)
 
         if not scored:
@@ -269,7 +283,9 @@ class Engine:
         """Poses of one candidate from the matches of one heading: several distinct ones from
         the two-point search when gravity is known, else the three-point RANSAC's best."""
         entry = self.library[model_id]
-        matches = mutual_nearest(view.features, entry.features)
+        subset = self._match_subset(len(view.features), seed)
+        matches = mutual_nearest(view.features[subset], entry.features)
+        matches[:, 0] = subset[matches[:, 0]]
         model_points = entry.keypoints[matches[:, 1]]
         observed = view.keypoints[matches[:, 0]]
         if turn is not None and not estimate_scale:
@@ -298,19 +314,36 @@ class Engine:
         )
         return [Hypothesis(model_id, result.transform, matches, view)]
 
-    def _score(self, hypothesis: Hypothesis, probes: np.ndarray, coverage: CoverageCheck) -> float:
-        """How well a model -> observation pose fits: the share of the query it explains
-        (:class:`SurfaceCheck`) times the share of the model surface in the observed region
-        that the query covers (:class:`CoverageCheck`)."""
-        model_id = hypothesis.model_id
+    def _match_subset(self, count: int, seed: int) -> np.ndarray:
+        """Which query key points take part in matching: at most ``match_points``, a fixed
+        random subset (matching cost grows with their number, the pose barely does)."""
+        if count <= self.match_points:
+            return np.arange(count)
+        return np.sort(np.random.default_rng(seed).permutation(count)[: self.match_points])
+
+    def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
+        """The model's surface check and its sample for the coverage check (cached)."""
         if model_id not in self._checks:
             points = self.library[model_id].points
             step = max(1, len(points) // self.coverage_points)
             self._checks[model_id] = (SurfaceCheck(points), points[::step].astype(np.float64))
-        surface, sample = self._checks[model_id]
+        return self._checks[model_id]
+
+    def _explained(self, hypothesis: Hypothesis, probes: np.ndarray) -> float:
+        """The share of the query a pose lays onto the model (:class:`SurfaceCheck`)."""
+        surface, _ = self._checks_of(hypothesis.model_id)
         pose = hypothesis.transform[None]
-        explained = surface.explained(probes, pose, self.ransac_distance)[0]
-        return float(explained * coverage.covered(sample, pose, self.ransac_distance)[0])
+        return float(surface.explained(probes, pose, self.ransac_distance)[0])
+
+    def _covered(self, hypothesis: Hypothesis, coverage: CoverageCheck) -> float:
+        """The share of the model surface in the observed region that the query covers."""
+        _, sample = self._checks_of(hypothesis.model_id)
+        pose = hypothesis.transform[None]
+        return float(coverage.covered(sample, pose, self.ransac_distance)[0])
+
+    def _score(self, hypothesis: Hypothesis, probes: np.ndarray, coverage: CoverageCheck) -> float:
+        """How well a model -> observation pose fits: explained share times covered share."""
+        return self._explained(hypothesis, probes) * self._covered(hypothesis, coverage)
 
     def _refine(
         self,
@@ -319,22 +352,36 @@ class Engine:
         probes: np.ndarray,
         coverage: CoverageCheck,
     ) -> Scored:
-        """Point-to-plane ICP of the query onto the (scaled) model surface, kept only when it
-        raises the score, so that refining never demotes a pose below unrefined ones."""
+        """Point-to-plane ICP of the query onto the (scaled) model surface, and the refined
+        pose's score. The refined pose is kept even when its score is a little lower: the
+        soft score rewards a slightly wrong pose about as much as the right one, ICP does not."""
         hypothesis = item.hypothesis
         rigid, scale = _split_scale(hypothesis.transform)
-        refined = reg.registration_icp(
-            query,
-            self._surface(hypothesis.model_id, scale),
-            self.icp_distance,
-            invert(rigid),
-            reg.TransformationEstimationPointToPlane(),
-        )
-        pose = invert(np.asarray(refined.transformation))
+        pose = self._icp(query, hypothesis.model_id, scale, rigid)
         pose[:3, :3] *= scale
         moved = replace(hypothesis, transform=pose)
-        score = self._score(moved, probes, coverage)
-        return Scored(moved, score) if score > item.score else item
+        return Scored(moved, self._score(moved, probes, coverage))
+
+    def _icp(
+        self, query: o3d.geometry.PointCloud, model_id: str, scale: float, start: np.ndarray
+    ) -> np.ndarray:
+        """Point-to-plane ICP of the query onto the model surface (scaled by ``scale`` about
+        the origin) from the rigid model -> observation pose ``start``; the refined rigid pose.
+
+        Coarse to fine (3, then 1 times the ICP distance): a hypothesis from two matches can be
+        a few degrees off, which moves a chair's far side further than one ICP distance.
+        """
+        surface = self._surface(model_id, scale)
+        current = invert(start)
+        for factor in _ICP_SCHEDULE:
+            current = reg.registration_icp(
+                query,
+                surface,
+                factor * self.icp_distance,
+                current,
+                reg.TransformationEstimationPointToPlane(),
+            ).transformation
+        return invert(np.asarray(current))
 
     def _fit_at_observed_size(
         self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud, observed_height: float
@@ -355,14 +402,7 @@ class Engine:
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
         # x = R (s p + (1 - s) c) + t = R y + t_s for y = s p on the origin-scaled surface
         start = make_pose(rotation, translation + (1 - scale) * rotation @ centre)
-        refined = reg.registration_icp(
-            query,
-            self._surface(hypothesis.model_id, scale),
-            self.icp_distance,
-            invert(start),
-            reg.TransformationEstimationPointToPlane(),
-        )
-        fitted = invert(np.asarray(refined.transformation))
+        fitted = self._icp(query, hypothesis.model_id, scale, start)
         fitted[:3, 3] -= (1 - scale) * fitted[:3, :3] @ centre
         return replace(hypothesis, transform=fitted)
 
@@ -377,7 +417,7 @@ class Engine:
         the back; when it spans less than :data:`_FULL_HEIGHT_SHARE` of the model's height
         (feet or top hidden), the fitted height is kept.
         """
-        sample = self._checks[hypothesis.model_id][1]
+        _, sample = self._checks_of(hypothesis.model_id)
         posed = sample @ hypothesis.transform[:3, :3].T @ up + hypothesis.transform[:3, 3] @ up
         observed_span, model_span = np.ptp(heights), np.ptp(posed)
         if observed_span < _FULL_HEIGHT_SHARE * model_span:
@@ -424,7 +464,8 @@ def _split_scale(pose: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _best_per_model(model_ids: list[str], scored: list[Scored]) -> list[Candidate]:
-    """Each shortlisted model once, with its best score (0 when no pose was found), best first."""
+    """Each shortlisted model once, with its best score (0 when none of its poses was among
+    those fully checked), best first."""
     best = dict.fromkeys(model_ids, 0.0)
     for item in scored:
         model_id = item.hypothesis.model_id

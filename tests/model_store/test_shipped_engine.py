@@ -1,0 +1,48 @@
+"""The shipped checkpoint and default library through the engine: library chairs' own partial
+views, under known rigid transforms, are recovered to within 2 degrees and 1 cm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import procedural_shape
+from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.geometry.se3 import make_pose, rotation_error_deg
+from catalign.library.index import load
+from catalign.registration.engine import Engine
+
+UP = np.array([0.0, 0.0, 1.0])
+SEEDS = range(12)
+# Measured with the shipped checkpoint and engine defaults: 7 of these 12 views are recovered
+# within 2 degrees and 1 cm (and 9 of 12 are the right chair within 5 degrees); the features
+# were trained on ShapeNet chairs only, and some procedural chairs look alike from one side.
+MIN_RECOVERED = 6
+
+
+@pytest.fixture(scope="module")
+def engine() -> Engine:
+    extractor = LearnedExtractor()
+    library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
+    return Engine(extractor, library, headings=extractor.headings, top_k=10)
+
+
+def _recovered(engine: Engine, seed: int) -> bool:
+    shape = procedural_shape(seed)
+    # standing on the floor of a Z-up world, turned, seen from 2 m and 25 degrees up
+    rotation = upright_rotation(0.7 + 1.3 * seed)
+    pose = make_pose(rotation, np.array([0.3, -0.2, -shape.points[:, 1].min()]))
+    camera = camera_at(np.array([0.3, -0.2, 0.4]), 2.0, 25.0, 30.0)
+    points = render_view(shape, pose, camera, np.random.default_rng(seed))
+    result = engine.register(points, up=UP, seed=0)
+    return (
+        result.model_id == shape.shape_id
+        and rotation_error_deg(result.pose[:3, :3], pose[:3, :3]) < 2.0
+        and float(np.linalg.norm(result.pose[:3, 3] - pose[:3, 3])) < 0.01
+    )
+
+
+def test_own_partial_views_are_recovered(engine: Engine) -> None:
+    recovered = [seed for seed in SEEDS if _recovered(engine, seed)]
+    assert len(recovered) >= MIN_RECOVERED, f"recovered only the views of chairs {recovered}"
