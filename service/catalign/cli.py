@@ -34,7 +34,9 @@ def main(
 
 @app.command()
 def evaluate(
-    method: Annotated[str, typer.Option(help="Registration method: fpfh or learned.")] = "fpfh",
+    method: Annotated[
+        str, typer.Option(help="Registration method: fpfh, learned or fpfh-engine.")
+    ] = "fpfh",
     model_dir: Annotated[
         Path | None, typer.Option(help="Weights of the learned method (default: model_store/).")
     ] = None,

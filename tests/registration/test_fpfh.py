@@ -112,6 +112,8 @@ def test_build_registrar():
 
 
 def test_build_registrar_unknown_name():
-    with pytest.raises(ConfigError, match="unknown method 'nope'; known methods: fpfh, learned"):
+    with pytest.raises(
+        ConfigError, match="unknown method 'nope'; known methods: fpfh, fpfh-engine, learned"
+    ):
         build_registrar("nope")
     assert issubclass(ConfigError, CatalignError)

@@ -19,11 +19,11 @@
    a chair's front from its side and back where inlier counts cannot;
 6. **ICP + score**: the ``refine`` best poses get point-to-plane ICP and are scored again the
    same way; the best of them wins. Each candidate's score in the answer is that same measure
-   (after ICP for the refined poses). With
-   ``up``, the winner is fitted once more against the model scaled to the observed height and
-   centred on the observed height span, the pose staying rigid: for another instance of the
-   category that puts the model's frame (its bounding-box centre) where the observed chair's
-   is, rather than hugging one side of it.
+   (after ICP for the refined poses). With ``up``, a winner that does not fit the query
+   exactly (another instance of the category) is fitted once more against the model scaled
+   to the observed height and centred on the observed height span, the pose staying rigid:
+   that puts the model's frame (its bounding-box centre) where the observed chair's is,
+   rather than hugging one side of it.
 """
 
 from __future__ import annotations
@@ -95,7 +95,9 @@ class Engine:
     heading), ``probe_points`` (query key points used to rank headings and to verify poses),
     ``coverage_points`` (model surface points for the coverage check), ``match_points`` (query
     key points that take part in matching), ``verify_top`` (poses, best by the surface check,
-    that get the coverage check), ``refine`` (poses that get ICP).
+    that get the coverage check), ``refine`` (poses that get ICP), ``exact_fitness`` (the
+    share of the query within one ICP distance of the model above which the model is taken to
+    be the observed instance itself, and its fitted pose is not recentred).
     """
 
     def __init__(
@@ -119,6 +121,7 @@ class Engine:
         heading_models: int = 10,
         match_points: int = 1_000,
         verify_top: int = 32,
+        exact_fitness: float = 0.9,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -138,6 +141,7 @@ class Engine:
         self.heading_models = heading_models
         self.match_points = match_points
         self.verify_top = verify_top
+        self.exact_fitness = exact_fitness
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
 
@@ -198,11 +202,12 @@ class Engine:
                 self._refine(item, query, probes, coverage) for item in scored[: self.refine]
             ]
             hypothesis = max(refined, key=lambda item: item.score).hypothesis
-            if turn is not None and not estimate_scale:
+            fit = self._fit(hypothesis, query)
+            if turn is not None and not estimate_scale and fit.fitness < self.exact_fitness:
                 heights = keypoints @ turn[1]
                 hypothesis = self._fit_at_observed_size(hypothesis, query, np.ptp(heights))
                 hypothesis = self._centre_on_height(hypothesis, heights, turn[1])
-            fit = self._fit(hypothesis, query)
+                fit = self._fit(hypothesis, query)
         num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
             model_id=hypothesis.model_id,

@@ -7,6 +7,9 @@
   (vectorised RANSAC with inliers within 2 voxels, since different instances never match
   exactly; ICP within 1; the up prior when given), on the engine's shortlist of the 10 most
   similar models by global descriptor.
+* ``fpfh-engine``: the learned method's index and engine with FPFH features in place of the
+  learned ones (one heading: FPFH does not depend on orientation), so that the two features
+  are compared with everything else equal.
 """
 
 from __future__ import annotations
@@ -39,11 +42,19 @@ def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
     )
 
 
+def _fpfh_engine(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+    from catalign.features.extractor import FPFHExtractor
+    from catalign.registration.indexed import IndexedRegistrar
+
+    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up, top_k=LEARNED_TOP_K)
+
+
 LEARNED_TOP_K = 10
 
 METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {
     "fpfh": _fpfh,
     "learned": _learned,
+    "fpfh-engine": _fpfh_engine,
 }
 
 
