@@ -183,11 +183,11 @@ class Engine:
 
         with _timed(timings, "verify"):
             # The surface check is cheap: every pose gets it; the coverage check only the best.
-            explained = [self._explained(h, probes) for h in hypotheses]
+            explained = self._explained_all(hypotheses, probes)
             best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
             scored = [
-                Scored(h, explained[i] * self._covered(h, coverage))
-                for i, h in ((i, hypotheses[i]) for i in best_first)
+                Scored(hypotheses[i], explained[i] * self._covered(hypotheses[i], coverage))
+                for i in best_first
             ]
             scored.sort(key=lambda item: -item.score)
 
@@ -339,6 +339,18 @@ class Engine:
         surface, _ = self._checks_of(hypothesis.model_id)
         pose = hypothesis.transform[None]
         return float(surface.explained(probes, pose, self.ransac_distance)[0])
+
+    def _explained_all(self, hypotheses: list[Hypothesis], probes: np.ndarray) -> np.ndarray:
+        """:meth:`_explained` of many poses, one surface query per model."""
+        explained = np.zeros(len(hypotheses))
+        by_model: dict[str, list[int]] = {}
+        for i, hypothesis in enumerate(hypotheses):
+            by_model.setdefault(hypothesis.model_id, []).append(i)
+        for model_id, rows in by_model.items():
+            surface, _ = self._checks_of(model_id)
+            poses = np.stack([hypotheses[i].transform for i in rows])
+            explained[rows] = surface.explained(probes, poses, self.ransac_distance)
+        return explained
 
     def _covered(self, hypothesis: Hypothesis, coverage: CoverageCheck) -> float:
         """The share of the model surface in the observed region that the query covers."""
