@@ -35,10 +35,14 @@ def _observe(seed: int, pose: np.ndarray) -> np.ndarray:
     return transform(procedural_shape(seed).points, pose)
 
 
-def test_mutual_nearest_agrees_with_brute_force_distances() -> None:
+@pytest.mark.parametrize("unit_norm", [False, True])
+def test_mutual_nearest_agrees_with_brute_force_distances(unit_norm: bool) -> None:
     rng = np.random.default_rng(3)
     query = rng.gamma(2.0, size=(300, 33)).astype(np.float32)  # FPFH-like: not unit norm
     model = rng.gamma(2.0, size=(400, 33)).astype(np.float32)
+    if unit_norm:  # FCGF-like: the norm terms are skipped
+        query /= np.linalg.norm(query, axis=1, keepdims=True)
+        model /= np.linalg.norm(model, axis=1, keepdims=True)
     distances = np.linalg.norm(query[:, None].astype(np.float64) - model[None], axis=2)
     forward, backward = distances.argmin(axis=1), distances.argmin(axis=0)
     mutual = np.flatnonzero(backward[forward] == np.arange(len(query)))
