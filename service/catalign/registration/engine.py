@@ -334,14 +334,9 @@ class Engine:
             self._checks[model_id] = (SurfaceCheck(points), points[::step].astype(np.float64))
         return self._checks[model_id]
 
-    def _explained(self, hypothesis: Hypothesis, probes: np.ndarray) -> float:
-        """The share of the query a pose lays onto the model (:class:`SurfaceCheck`)."""
-        surface, _ = self._checks_of(hypothesis.model_id)
-        pose = hypothesis.transform[None]
-        return float(surface.explained(probes, pose, self.ransac_distance)[0])
-
     def _explained_all(self, hypotheses: list[Hypothesis], probes: np.ndarray) -> np.ndarray:
-        """:meth:`_explained` of many poses, one surface query per model."""
+        """The share of the query each pose lays onto its model (:class:`SurfaceCheck`), one
+        surface query per model."""
         explained = np.zeros(len(hypotheses))
         by_model: dict[str, list[int]] = {}
         for i, hypothesis in enumerate(hypotheses):
@@ -360,7 +355,8 @@ class Engine:
 
     def _score(self, hypothesis: Hypothesis, probes: np.ndarray, coverage: CoverageCheck) -> float:
         """How well a model -> observation pose fits: explained share times covered share."""
-        return self._explained(hypothesis, probes) * self._covered(hypothesis, coverage)
+        explained = self._explained_all([hypothesis], probes)[0]
+        return float(explained * self._covered(hypothesis, coverage))
 
     def _refine(
         self,
