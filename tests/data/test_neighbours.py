@@ -205,6 +205,10 @@ def test_shape_neighbours_cache(family, computed, monkeypatch: pytest.MonkeyPatc
     # other parameters are another cache entry: computed again (and here, refused)
     with pytest.raises(AssertionError, match="recomputed"):
         shape_neighbours(shapes, train, cache_dir=cache_dir, **(PARAMS | {"k": 2}))
+    # so are the same ids with other points (a shape turned into another frame)
+    turned = shapes | {"box-3": shapes["box-3"][:, [2, 1, 0]]}
+    with pytest.raises(AssertionError, match="recomputed"):
+        shape_neighbours(turned, train, cache_dir=cache_dir, **PARAMS)
 
 
 def test_shape_neighbours_cache_dir_from_env(family, tmp_path, monkeypatch: pytest.MonkeyPatch):

@@ -78,9 +78,10 @@ def shape_neighbours(
     ``shapes`` maps ids to surface points in the canonical frame (any scale: NCC removes it).
     """
     params = {"k": k, "points": points, "shortlist": shortlist, "parts": parts}
-    key = hashlib.sha256(
-        json.dumps([sorted(shapes), sorted(train_ids), params]).encode()
-    ).hexdigest()[:16]
+    digest = hashlib.sha256(json.dumps([sorted(shapes), sorted(train_ids), params]).encode())
+    for shape_id in sorted(shapes):  # the points too: a shape turned into another frame differs
+        digest.update(np.ascontiguousarray(shapes[shape_id], dtype=np.float64).tobytes())
+    key = digest.hexdigest()[:16]
     cache_file = (cache_dir or default_cache_dir()) / f"neighbours-{key}.json"
     if cache_file.is_file():
         return {i: [(n, d) for n, d in v] for i, v in json.loads(cache_file.read_text()).items()}
