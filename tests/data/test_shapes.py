@@ -116,8 +116,8 @@ def test_shared_chairs_load(shared_chairs: SharedChairs):
 
 
 def _backrest_heading_deg(points: np.ndarray) -> tuple[float, float]:
-    """Where the top quarter of a chair (mostly its backrest) sits horizontally relative to the whole:
-    the heading in degrees (0 = +Z, 90 = +X) and the offset's length."""
+    """Where the top quarter of a chair (mostly its backrest) sits horizontally, relative to
+    the whole: the heading in degrees (0 = +Z, 90 = +X) and the offset's length."""
     heights = points[:, 1]
     top = points[heights > heights.min() + 0.75 * np.ptp(heights)]
     dx, dz = top[:, [0, 2]].mean(axis=0) - points[:, [0, 2]].mean(axis=0)

@@ -8,6 +8,7 @@ import pytest
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
 from catalign.registration.gravity import (
+    level_pose,
     leveller,
     plausible_pairs,
     two_point_poses,
@@ -86,6 +87,29 @@ def test_leveller_turns_up_onto_plus_y() -> None:
         assert np.allclose(leveller(up) @ (up / np.linalg.norm(up)), UP)
     with pytest.raises(InvalidInputError, match="up"):
         leveller(np.zeros(3))
+
+
+def test_level_pose_removes_tilt_and_keeps_yaw_and_pivot() -> None:
+    up = np.array([0.0, 0.0, 1.0])  # a robot's world: +Z up
+    turn = leveller(up)
+    pivot = np.array([0.1, 0.4, -0.2])
+    upright = np.eye(4)
+    upright[:3, :3] = turn.T @ axis_angle(UP, 0.7)
+    upright[:3, 3] = [1.0, 2.0, 0.3]
+    # an upright pose is its own nearest
+    assert np.allclose(level_pose(upright, turn, pivot), upright, atol=1e-12)
+    # a tilt of 6 degrees about the model's own x axis is undone, the yaw kept
+    tilted = upright.copy()
+    tilted[:3, :3] = upright[:3, :3] @ axis_angle(np.array([1.0, 0.0, 0.0]), np.radians(6))
+    levelled = level_pose(tilted, turn, pivot)
+    assert np.allclose(levelled[:3, :3] @ UP, up, atol=1e-12)
+    assert rotation_error_deg(levelled[:3, :3], upright[:3, :3]) < 1e-9
+
+    # the pivot stays where the tilted pose put it
+    def image(pose: np.ndarray) -> np.ndarray:
+        return pose[:3, :3] @ pivot + pose[:3, 3]
+
+    assert np.allclose(image(levelled), image(tilted))
 
 
 def test_surface_check_matches_a_brute_force_reference() -> None:

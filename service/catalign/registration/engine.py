@@ -21,9 +21,10 @@
    same way; the best of them wins. Each candidate's score in the answer is that same measure
    (after ICP for the refined poses). With ``up``, a winner that does not fit the query
    exactly (another instance of the category) is fitted once more against the model scaled
-   to the observed height and centred on the observed height span, the pose staying rigid:
-   that puts the model's frame (its bounding-box centre) where the observed chair's is,
-   rather than hugging one side of it.
+   to the observed height, stood upright (ICP tilts it to hug a differently shaped chair),
+   and centred on the observation along each model axis that the view spans nearly whole,
+   the pose staying rigid: that puts the model's frame (its bounding-box centre) where the
+   observed chair's is, rather than hugging one side of it.
 """
 
 from __future__ import annotations
@@ -43,15 +44,15 @@ from catalign.library.index import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.alignment import mutual_count, mutual_nearest, point_cloud
 from catalign.registration.base import Candidate, RegistrationResult
-from catalign.registration.gravity import leveller, yaw_ransac
+from catalign.registration.gravity import level_pose, leveller, yaw_ransac
 from catalign.registration.ransac import MODEL_UP, ransac
 from catalign.registration.validation import validate_cloud
 from catalign.registration.verification import CoverageCheck, SurfaceCheck
 
 reg = o3d.pipelines.registration
 _MODEL_UP = np.asarray(MODEL_UP)
-# A view spanning less of the model's height than this has lost its feet or its top.
-_FULL_HEIGHT_SHARE = 0.8
+# A view spanning less of the model along an axis than this has lost that side from sight.
+_FULL_SPAN_SHARE = 0.8
 # ICP distances, in multiples of ``icp_distance``: coarse first, then fine.
 _ICP_SCHEDULE = (3.0, 1.0)
 # Sizes of another instance, relative to the model, that the final fit considers.
@@ -204,9 +205,10 @@ class Engine:
             hypothesis = max(refined, key=lambda item: item.score).hypothesis
             fit = self._fit(hypothesis, query)
             if turn is not None and not estimate_scale and fit.fitness < self.exact_fitness:
-                heights = keypoints @ turn[1]
-                hypothesis = self._fit_at_observed_size(hypothesis, query, np.ptp(heights))
-                hypothesis = self._centre_on_height(hypothesis, heights, turn[1])
+                height = np.ptp(keypoints @ turn[1])
+                hypothesis = self._fit_at_observed_size(hypothesis, query, height)
+                hypothesis = self._stand_upright(hypothesis, turn)
+                hypothesis = self._centre_on_extent(hypothesis, keypoints)
                 fit = self._fit(hypothesis, query)
         num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
@@ -419,25 +421,31 @@ class Engine:
         fitted[:3, 3] -= (1 - scale) * fitted[:3, :3] @ centre
         return replace(hypothesis, transform=fitted)
 
-    def _centre_on_height(
-        self, hypothesis: Hypothesis, heights: np.ndarray, up: np.ndarray
-    ) -> Hypothesis:
-        """Shift the pose along ``up`` so the model spans the same heights as the observation.
+    def _stand_upright(self, hypothesis: Hypothesis, turn: np.ndarray) -> Hypothesis:
+        """The fitted pose stood upright about the model's centre (:func:`level_pose`)."""
+        entry = self.library[hypothesis.model_id]
+        centre = (entry.bbox_min + entry.bbox_max) / 2
+        return replace(hypothesis, transform=level_pose(hypothesis.transform, turn, centre))
+
+    def _centre_on_extent(self, hypothesis: Hypothesis, keypoints: np.ndarray) -> Hypothesis:
+        """Shift the (upright) pose along each of the model's axes on which the observation
+        spans nearly all of the model, so that the two spans share their middle there.
 
         A different instance never fits exactly: ICP lays its seat on the observed seat, but
-        the chair's frame (its bounding-box centre, the category-level pose) sits halfway up
-        whatever height the chair has. A view usually shows that whole height, feet to top of
-        the back; when it spans less than :data:`_FULL_HEIGHT_SHARE` of the model's height
-        (feet or top hidden), the fitted height is kept.
+        the chair's frame (its bounding-box centre, the category-level pose) sits halfway along
+        whatever height, width and depth the chair has. A view usually shows the whole height,
+        feet to top of the back, and often the whole width or depth; along an axis where it
+        spans less than :data:`_FULL_SPAN_SHARE` of the model (that side hidden), the fitted
+        position is kept.
         """
         _, sample = self._checks_of(hypothesis.model_id)
-        posed = sample @ hypothesis.transform[:3, :3].T @ up + hypothesis.transform[:3, 3] @ up
-        observed_span, model_span = np.ptp(heights), np.ptp(posed)
-        if observed_span < _FULL_HEIGHT_SHARE * model_span:
-            return hypothesis
-        shift = (heights.max() + heights.min() - posed.max() - posed.min()) / 2
+        rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
+        observed = (keypoints - translation) @ rotation  # into the model frame
+        shift = (observed.max(axis=0) + observed.min(axis=0)) / 2
+        shift -= (sample.max(axis=0) + sample.min(axis=0)) / 2
+        full = np.ptp(observed, axis=0) >= _FULL_SPAN_SHARE * np.ptp(sample, axis=0)
         pose = hypothesis.transform.copy()
-        pose[:3, 3] += shift * up
+        pose[:3, 3] += rotation @ np.where(full, shift, 0.0)
         return replace(hypothesis, transform=pose)
 
     def _fit(

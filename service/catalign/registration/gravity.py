@@ -62,6 +62,22 @@ def yaw_rotations(yaws: np.ndarray) -> np.ndarray:
     return rotations
 
 
+def level_pose(pose: np.ndarray, turn: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """The upright pose nearest to a model -> observation ``pose``: the model's +Y along the
+    observation's up (``turn`` is :func:`leveller`'s), the yaw the nearest (in the Frobenius
+    sense) to the pose's, and the model point ``pivot`` left where the pose put it.
+
+    ICP onto another instance tilts the model to hug a differently shaped chair; when gravity is
+    known that tilt is fitting error, not pose."""
+    levelled = turn @ pose[:3, :3]
+    yaw = np.arctan2(levelled[0, 2] - levelled[2, 0], levelled[0, 0] + levelled[2, 2])
+    rotation = turn.T @ yaw_rotations(yaw)[0]
+    upright = np.eye(4)
+    upright[:3, :3] = rotation
+    upright[:3, 3] = pose[:3, :3] @ pivot + pose[:3, 3] - rotation @ pivot
+    return upright
+
+
 def two_point_poses(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Yaw and translation of ``H`` pairs of matches, (H,2,3) each: the turn that aligns the
     horizontal parts of the two difference vectors, and the shift that joins the midpoints."""
