@@ -36,6 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
@@ -436,11 +437,12 @@ class Engine:
         whatever height, width and depth the chair has. A view usually shows the whole height,
         feet to top of the back, and often the whole width or depth; along an axis where it
         spans less than :data:`_FULL_SPAN_SHARE` of the model (that side hidden), the fitted
-        position is kept.
+        position is kept. Stray points (a sensor's flying pixels) would stretch a span, so only
+        key points with neighbours count.
         """
         _, sample = self._checks_of(hypothesis.model_id)
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
-        observed = (keypoints - translation) @ rotation  # into the model frame
+        observed = (_supported(keypoints, 2 * self.extractor.voxel_size) - translation) @ rotation
         shift = (observed.max(axis=0) + observed.min(axis=0)) / 2
         shift -= (sample.max(axis=0) + sample.min(axis=0)) / 2
         full = np.ptp(observed, axis=0) >= _FULL_SPAN_SHARE * np.ptp(sample, axis=0)
@@ -470,6 +472,14 @@ class Engine:
         scaled = o3d.geometry.PointCloud(surface)
         scaled.scale(scale, center=np.zeros(3))
         return scaled
+
+
+def _supported(points: np.ndarray, radius: float, neighbours: int = 2) -> np.ndarray:
+    """The points with at least ``neighbours`` others within ``radius`` (all of them when too
+    few are)."""
+    counts = np.array([len(n) for n in cKDTree(points).query_ball_point(points, radius)]) - 1
+    solid = points[counts >= neighbours]
+    return solid if len(solid) >= 0.5 * len(points) else points
 
 
 def _scale_of(pose: np.ndarray) -> float:
