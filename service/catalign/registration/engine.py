@@ -92,7 +92,8 @@ class Engine:
     ``up_tolerance_deg`` (how far the chair's up may tilt from the given ``up`` in the
     three-point search), ``min_points`` (occupied voxels a query needs), ``keep_headings``
     (headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
-    models), ``ransac_iterations`` (cap on draws of the three-point RANSAC), ``pair_draws``
+    models, with ``up`` by a two-point search of ``heading_draws`` pairs on each),
+    ``ransac_iterations`` (cap on draws of the three-point RANSAC), ``pair_draws``
     (pairs the two-point search draws), ``poses_per_view`` (distinct poses it keeps per
     heading), ``probe_points`` (query key points used to rank headings and to verify poses),
     ``coverage_points`` (model surface points for the coverage check), ``match_points`` (query
@@ -121,6 +122,7 @@ class Engine:
         coverage_points: int = 1_500,
         pair_draws: int = 3_000,
         heading_models: int = 10,
+        heading_draws: int = 300,
         match_points: int = 1_000,
         verify_top: int = 32,
         exact_fitness: float = 0.9,
@@ -141,6 +143,7 @@ class Engine:
         self.coverage_points = coverage_points
         self.pair_draws = pair_draws
         self.heading_models = heading_models
+        self.heading_draws = heading_draws
         self.match_points = match_points
         self.verify_top = verify_top
         self.exact_fitness = exact_fitness
@@ -175,7 +178,9 @@ class Engine:
             candidates = self._shortlist(views, top_k if top_k is not None else self.top_k, turn)
 
         with _timed(timings, "match_ransac"):
-            kept = self._consistent_views(candidates[: self.heading_models], views, order)
+            kept = self._consistent_views(
+                candidates[: self.heading_models], views, order, turn, seed
+            )
             hypotheses = [
                 hypothesis
                 for model_id in candidates
@@ -244,9 +249,9 @@ class Engine:
     def _shortlist(
         self, views: list[QueryView], k: int | None, turn: np.ndarray | None
     ) -> list[str]:
+        """The ``k`` (None: all) library models most like the query, best first: the first of
+        them also choose the headings, so the order matters even when all are kept."""
         ids = self.library.ids
-        if k is None or k >= len(ids):
-            return list(ids)
         size = np.ptp(views[0].keypoints, axis=0)
         height = None if turn is None else float(np.ptp(views[0].keypoints @ turn[1]))
         scores = np.max(
@@ -259,26 +264,46 @@ class Engine:
         return [ids[i] for i in np.argsort(-scores, kind="stable")[:k]]
 
     def _consistent_views(
-        self, model_ids: list[str], views: list[QueryView], order: np.ndarray
+        self,
+        model_ids: list[str],
+        views: list[QueryView],
+        order: np.ndarray,
+        turn: np.ndarray | None,
+        seed: int,
     ) -> list[QueryView]:
         """The ``keep_headings`` headings whose features agree best with these models'.
 
         Library models share the category's canonical orientation, so the heading at which the
         query looks canonical is one for all of them: it is found once, on the best
-        shortlisted models, instead of once per candidate.
+        shortlisted models, instead of once per candidate. Agreement is the number of mutual
+        nearest neighbours among the probe key points; with ``up``, only those that one
+        upright pose explains (a quick two-point search per model), because at a wrong
+        heading a symmetric part (a seat, four legs) still collects mutual matches, just not
+        geometrically consistent ones.
         """
         if len(views) <= self.keep_headings:
             return views
         probe = order[: self.probe_points]
-        # Headings voxelise differently, so their key point counts differ by a few.
-        agreement = [
-            sum(
-                mutual_count(v.features[probe % len(v.features)], self.library[i].features)
-                for i in model_ids
-            )
-            for v in views
-        ]
-        return [views[i] for i in np.argsort(agreement)[::-1][: self.keep_headings]]
+        agreement = np.zeros(len(views))
+        for v, view in enumerate(views):
+            # Headings voxelise differently, so their key point counts differ by a few.
+            rows = probe % len(view.features)
+            for model_id in model_ids:
+                entry = self.library[model_id]
+                if turn is None:
+                    agreement[v] += mutual_count(view.features[rows], entry.features)
+                    continue
+                pairs = mutual_nearest(view.features[rows], entry.features, min_mutual=0)
+                poses = yaw_ransac(
+                    entry.keypoints[pairs[:, 1]],
+                    view.keypoints[rows[pairs[:, 0]]] @ turn.T,
+                    self.ransac_distance,
+                    seed=seed,
+                    draws=self.heading_draws,
+                    keep=1,
+                )
+                agreement[v] += poses.inliers[0] if len(poses) else 0
+        return [views[i] for i in np.argsort(-agreement, kind="stable")[: self.keep_headings]]
 
     def _hypotheses(
         self,
