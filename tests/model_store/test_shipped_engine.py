@@ -15,12 +15,10 @@ from catalign.registration.engine import Engine
 
 UP = np.array([0.0, 0.0, 1.0])
 SEEDS = range(12)
-# Measured with the shipped checkpoint and engine defaults: 6 of these 12 views are recovered
-# within 2 degrees and 1 cm, and 10 of 12 are the right chair within 5 degrees; the misses are
-# off by 1 to 24 cm along a direction the view barely constrains, turned round, or another
-# chair. The features were trained on ShapeNet chairs only. The floor leaves one case for other
-# BLAS builds.
-MIN_RECOVERED = 5
+# Measured with the shipped checkpoint and engine defaults: 8 of these 12 views are recovered
+# within 2 degrees and 1 cm. The features were trained on ShapeNet chairs only. The floor leaves
+# one case for other BLAS builds.
+MIN_RECOVERED = 7
 
 
 @pytest.fixture(scope="module")

@@ -14,9 +14,9 @@ from catalign.training.pairs import PairSampler
 from catalign.training.validation import inlier_ratio
 
 # Measured when the checkpoint was shipped: the mean inlier ratio of feature nearest neighbours
-# over these 8 views of the first validation chair was 0.0028 (random features: 0.0006). The
+# over these 8 views of the first validation chair was 0.0049 (random features: 0.0006). The
 # floor sits between the two, so a broken or untrained model fails and noise does not.
-MEAN_INLIER_RATIO_FLOOR = 0.0015
+MEAN_INLIER_RATIO_FLOOR = 0.0025
 
 
 def test_shipped_model_loads_and_matches_its_card() -> None:
