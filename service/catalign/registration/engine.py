@@ -122,7 +122,7 @@ class Engine:
         coverage_points: int = 1_500,
         pair_draws: int = 3_000,
         heading_models: int = 10,
-        heading_draws: int = 1_000,
+        heading_draws: int = 300,
         match_points: int = 1_000,
         verify_top: int = 32,
         exact_fitness: float = 0.9,
