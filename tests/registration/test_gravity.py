@@ -15,7 +15,12 @@ from catalign.registration.gravity import (
     yaw_ransac,
     yaw_rotations,
 )
-from catalign.registration.verification import CoverageCheck, SurfaceCheck
+from catalign.registration.verification import (
+    CoverageCheck,
+    LayoutCheck,
+    SurfaceCheck,
+    top_offset,
+)
 
 UP = np.array([0.0, 1.0, 0.0])
 
@@ -161,3 +166,37 @@ def test_coverage_check_is_zero_when_nothing_lands_in_the_observed_region() -> N
     far = np.eye(4)
     far[:3, 3] = [10.0, 0.0, 0.0]
     assert CoverageCheck(observed, margin=0.05).covered(observed, far[None], 0.05)[0] == 0.0
+
+
+def _box_chair(rng: np.random.Generator) -> np.ndarray:
+    """A seat slab at half height and a backrest rising from its +Z edge (+Y up)."""
+    seat = rng.uniform([-0.25, 0.43, -0.25], [0.25, 0.47, 0.25], (800, 3))
+    back = rng.uniform([-0.25, 0.47, 0.21], [0.25, 0.95, 0.25], (800, 3))
+    return np.concatenate([seat, back])
+
+
+def test_top_offset_points_to_the_backrest() -> None:
+    offset = top_offset(_box_chair(np.random.default_rng(0)), UP)
+    assert offset[1] == 0.0
+    assert offset[2] > 0.1 and abs(offset[0]) < 0.02
+
+
+def test_layout_check_favours_the_heading_whose_top_leans_the_observed_way() -> None:
+    chair = _box_chair(np.random.default_rng(1))
+    model_offset = top_offset(chair, UP)
+    up = np.array([0.0, 0.0, 1.0])  # observed in a +Z-up world, turned by 0.4 rad
+    pose = np.eye(4)
+    pose[:3, :3] = axis_angle(up, 0.4) @ leveller(up).T
+    observed = chair @ pose[:3, :3].T
+    check = LayoutCheck(observed, up, weight=0.1)
+    turned = pose.copy()
+    turned[:3, :3] = axis_angle(up, np.pi) @ pose[:3, :3]
+    aside = pose.copy()
+    aside[:3, :3] = axis_angle(up, np.pi / 2) @ pose[:3, :3]
+    factors = check.factor(model_offset, np.stack([pose, turned, aside]))
+    assert factors == pytest.approx([1.1, 0.9, 1.0], abs=1e-6)
+    # a stool's top leans nowhere: no opinion
+    stool = np.random.default_rng(2).uniform(-0.2, 0.2, (500, 3))
+    assert LayoutCheck(stool, UP).factor(model_offset, pose[None])[0] == pytest.approx(
+        1.0, abs=0.05
+    )

@@ -48,7 +48,7 @@ from catalign.registration.base import Candidate, RegistrationResult
 from catalign.registration.gravity import level_pose, leveller, yaw_ransac
 from catalign.registration.ransac import MODEL_UP, ransac
 from catalign.registration.validation import validate_cloud
-from catalign.registration.verification import CoverageCheck, SurfaceCheck
+from catalign.registration.verification import CoverageCheck, LayoutCheck, SurfaceCheck, top_offset
 
 reg = o3d.pipelines.registration
 _MODEL_UP = np.asarray(MODEL_UP)
@@ -149,6 +149,7 @@ class Engine:
         self.exact_fitness = exact_fitness
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
+        self._top_offsets: dict[str, np.ndarray] = {}
 
     def register(
         self,
@@ -173,6 +174,7 @@ class Engine:
             order = np.random.default_rng(seed).permutation(len(keypoints))
             probes = keypoints[order[: self.probe_points]]
             coverage = CoverageCheck(keypoints, margin=self.ransac_distance)
+            layout = None if turn is None else LayoutCheck(keypoints, turn[1])
 
         with _timed(timings, "shortlist"):
             candidates = self._shortlist(views, top_k if top_k is not None else self.top_k, turn)
@@ -193,7 +195,12 @@ class Engine:
             explained = self._explained_all(hypotheses, probes)
             best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
             scored = [
-                Scored(hypotheses[i], explained[i] * self._covered(hypotheses[i], coverage))
+                Scored(
+                    hypotheses[i],
+                    explained[i]
+                    * self._covered(hypotheses[i], coverage)
+                    * self._leaning(hypotheses[i], layout),
+                )
                 for i in best_first
             ]
             scored.sort(key=lambda item: -item.score)
@@ -206,7 +213,8 @@ class Engine:
         with _timed(timings, "icp_score"):
             query = point_cloud(keypoints)
             refined = [
-                self._refine(item, query, probes, coverage) for item in scored[: self.refine]
+                self._refine(item, query, probes, coverage, layout)
+                for item in scored[: self.refine]
             ]
             hypothesis = max(refined, key=lambda item: item.score).hypothesis
             fit = self._fit(hypothesis, query)
@@ -381,10 +389,28 @@ class Engine:
         pose = hypothesis.transform[None]
         return float(coverage.covered(sample, pose, self.ransac_distance)[0])
 
-    def _score(self, hypothesis: Hypothesis, probes: np.ndarray, coverage: CoverageCheck) -> float:
-        """How well a model -> observation pose fits: explained share times covered share."""
+    def _leaning(self, hypothesis: Hypothesis, layout: LayoutCheck | None) -> float:
+        """:class:`LayoutCheck`'s factor for the pose (1 without ``up``)."""
+        if layout is None:
+            return 1.0
+        if hypothesis.model_id not in self._top_offsets:
+            points = self.library[hypothesis.model_id].points.astype(np.float64)
+            self._top_offsets[hypothesis.model_id] = top_offset(points, _MODEL_UP)
+        offset = self._top_offsets[hypothesis.model_id]
+        return float(layout.factor(offset, hypothesis.transform[None])[0])
+
+    def _score(
+        self,
+        hypothesis: Hypothesis,
+        probes: np.ndarray,
+        coverage: CoverageCheck,
+        layout: LayoutCheck | None,
+    ) -> float:
+        """How well a model -> observation pose fits: explained share times covered share,
+        nudged by the layout check."""
         explained = self._explained_all([hypothesis], probes)[0]
-        return float(explained * self._covered(hypothesis, coverage))
+        covered = self._covered(hypothesis, coverage)
+        return float(explained * covered * self._leaning(hypothesis, layout))
 
     def _refine(
         self,
@@ -392,6 +418,7 @@ class Engine:
         query: o3d.geometry.PointCloud,
         probes: np.ndarray,
         coverage: CoverageCheck,
+        layout: LayoutCheck | None,
     ) -> Scored:
         """Point-to-plane ICP of the query onto the (scaled) model surface, and the refined
         pose's score. The refined pose is kept even when its score is a little lower: the
@@ -401,7 +428,7 @@ class Engine:
         pose = self._icp(query, hypothesis.model_id, scale, rigid)
         pose[:3, :3] *= scale
         moved = replace(hypothesis, transform=pose)
-        return Scored(moved, self._score(moved, probes, coverage))
+        return Scored(moved, self._score(moved, probes, coverage, layout))
 
     def _icp(
         self, query: o3d.geometry.PointCloud, model_id: str, scale: float, start: np.ndarray
