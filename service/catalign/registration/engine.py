@@ -9,14 +9,17 @@
 3. **shortlist**: the ``top_k`` library entries by global-descriptor similarity and size;
 4. **match + RANSAC**: the ``keep_headings`` headings whose features agree best with the
    leading candidates' (most mutual nearest neighbours among a fixed subset of query key
-   points; models share the canonical orientation, so one choice serves all) get full mutual
+   points, with ``up`` only those one upright pose explains; models share the canonical
+   orientation, so one choice serves all) get full mutual
    matching and RANSAC against every candidate. With ``up`` (and no scale) that is the
    two-point search of :mod:`~catalign.registration.gravity`, which keeps several distinct
    poses; otherwise the three-point :func:`~catalign.registration.ransac.ransac`, one pose;
 5. **verify**: every pose is scored by how much of the query it lays onto the candidate's
    surface, and the ``verify_top`` best also by how much of that surface in the observed
    region the query covers (:mod:`~catalign.registration.verification`); their product tells
-   a chair's front from its side and back where inlier counts cannot;
+   a chair's front from its side where inlier counts cannot. With ``up`` a layout factor
+   (does the query's top lean the way the posed model's does) nudges it, which tells the
+   front from the back of another instance;
 6. **ICP + score**: the ``refine`` best poses get point-to-plane ICP and are scored again the
    same way; the best of them wins. Each candidate's score in the answer is that same measure
    (after ICP for the refined poses). With ``up``, a winner that does not fit the query
