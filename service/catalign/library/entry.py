@@ -60,6 +60,11 @@ class LibraryEntry:
     def num_keypoints(self) -> int:
         return len(self.keypoints)
 
+    @property
+    def centre(self) -> np.ndarray:
+        """The bounding-box centre: the origin of the category-level frame."""
+        return (self.bbox_min + self.bbox_max) / 2
+
 
 def file_sha256(path: Path) -> str:
     """Hex sha256 of a file's bytes, read in chunks."""

@@ -469,7 +469,7 @@ class Engine:
         scale = float(np.clip(observed_height / entry.size[1], *_SIZE_RANGE))
         if abs(scale - 1.0) < 0.02:
             return hypothesis
-        centre = (entry.bbox_min + entry.bbox_max) / 2
+        centre = entry.centre
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
         # x = R (s p + (1 - s) c) + t = R y + t_s for y = s p on the origin-scaled surface
         start = make_pose(rotation, translation + (1 - scale) * rotation @ centre)
@@ -479,8 +479,7 @@ class Engine:
 
     def _stand_upright(self, hypothesis: Hypothesis, turn: np.ndarray) -> Hypothesis:
         """The fitted pose stood upright about the model's centre (:func:`level_pose`)."""
-        entry = self.library[hypothesis.model_id]
-        centre = (entry.bbox_min + entry.bbox_max) / 2
+        centre = self.library[hypothesis.model_id].centre
         return replace(hypothesis, transform=level_pose(hypothesis.transform, turn, centre))
 
     def _centre_on_extent(self, hypothesis: Hypothesis, keypoints: np.ndarray) -> Hypothesis:
