@@ -129,7 +129,11 @@ def train(
     batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = 2,
     voxel_size: Annotated[float, typer.Option(help="Voxel size in metres.")] = 0.025,
     rotation: Annotated[
-        str, typer.Option(help="Augmentation: upright (any yaw), yaw-bin (+-22.5 deg) or so3.")
+        str,
+        typer.Option(
+            help="Augmentation: upright (any yaw), yaw-bin (+-22.5 deg, 8 query headings), "
+            "yaw-quarter (+-45 deg, 4 headings) or so3."
+        ),
     ] = "upright",
     procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
     learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,

@@ -40,17 +40,19 @@ class LearnedExtractor:
     """FCGF descriptors of voxel centroids from a trained ResUNet (``model_store/`` layout).
 
     ``headings`` is how many headings a query must be tried at: 8 for a model trained on
-    ``yaw-bin`` rotations (it only knows headings within 22.5 degrees), else 1.
+    ``yaw-bin`` rotations (it only knows headings within 22.5 degrees), 4 for ``yaw-quarter``,
+    else 1.
     """
 
     def __init__(self, model_dir: Path | None = None, threads: int | None = None) -> None:
         from catalign.training.checkpoint import load_model
+        from catalign.training.pairs import YAW_BINS
 
         self.model, self.card = load_model(model_dir or DEFAULT_MODEL_DIR)
         self.voxel_size = float(self.card["voxel_size"])
         self.fingerprint = str(self.card["sha256"])
         rotation = self.card.get("training", {}).get("rotation", "upright")
-        self.headings = 8 if rotation == "yaw-bin" else 1
+        self.headings = YAW_BINS.get(rotation, 1)
         if threads is not None:
             torch.set_num_threads(threads)
 

@@ -82,6 +82,16 @@ class Hypothesis:
 
 
 @dataclass(frozen=True)
+class Matchable:
+    """The part of a model that takes part in matching: rows of its key points, and their
+    features and positions."""
+
+    rows: np.ndarray
+    features: np.ndarray
+    keypoints: np.ndarray
+
+
+@dataclass(frozen=True)
 class Scored:
     hypothesis: Hypothesis
     score: float
@@ -100,7 +110,8 @@ class Engine:
     (pairs the two-point search draws), ``poses_per_view`` (distinct poses it keeps per
     heading), ``probe_points`` (query key points used to rank headings and to verify poses),
     ``coverage_points`` (model surface points for the coverage check), ``match_points`` (query
-    key points that take part in matching), ``verify_top`` (poses, best by the surface check,
+    key points that take part in matching), ``model_points`` (each model's key points that take
+    part in matching; None: all), ``verify_top`` (poses, best by the surface check,
     that get the coverage check), ``refine`` (poses that get ICP), ``exact_fitness`` (the
     share of the query within one ICP distance of the model above which the model is taken to
     be the observed instance itself, and its fitted pose is not recentred).
@@ -127,6 +138,7 @@ class Engine:
         heading_models: int = 10,
         heading_draws: int = 300,
         match_points: int = 1_000,
+        model_points: int | None = None,
         verify_top: int = 32,
         exact_fitness: float = 0.9,
     ) -> None:
@@ -148,11 +160,13 @@ class Engine:
         self.heading_models = heading_models
         self.heading_draws = heading_draws
         self.match_points = match_points
+        self.model_points = model_points
         self.verify_top = verify_top
         self.exact_fitness = exact_fitness
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
         self._top_offsets: dict[str, np.ndarray] = {}
+        self._matchable: dict[str, Matchable] = {}
 
     def register(
         self,
@@ -300,13 +314,13 @@ class Engine:
             # Headings voxelise differently, so their key point counts differ by a few.
             rows = probe % len(view.features)
             for model_id in model_ids:
-                entry = self.library[model_id]
+                model = self._matchable_of(model_id)
                 if turn is None:
-                    agreement[v] += mutual_count(view.features[rows], entry.features)
+                    agreement[v] += mutual_count(view.features[rows], model.features)
                     continue
-                pairs = mutual_nearest(view.features[rows], entry.features, min_mutual=0)
+                pairs = mutual_nearest(view.features[rows], model.features, min_mutual=0)
                 poses = yaw_ransac(
-                    entry.keypoints[pairs[:, 1]],
+                    model.keypoints[pairs[:, 1]],
                     view.keypoints[rows[pairs[:, 0]]] @ turn.T,
                     self.ransac_distance,
                     seed=seed,
@@ -326,11 +340,11 @@ class Engine:
     ) -> list[Hypothesis]:
         """Poses of one candidate from the matches of one heading: several distinct ones from
         the two-point search when gravity is known, else the three-point RANSAC's best."""
-        entry = self.library[model_id]
+        model = self._matchable_of(model_id)
         subset = self._match_subset(len(view.features), seed)
-        matches = mutual_nearest(view.features[subset], entry.features)
-        matches[:, 0] = subset[matches[:, 0]]
-        model_points = entry.keypoints[matches[:, 1]]
+        matches = mutual_nearest(view.features[subset], model.features)
+        model_points = model.keypoints[matches[:, 1]]
+        matches = np.stack([subset[matches[:, 0]], model.rows[matches[:, 1]]], axis=1)
         observed = view.keypoints[matches[:, 0]]
         if turn is not None and not estimate_scale:
             poses = yaw_ransac(
@@ -364,6 +378,21 @@ class Engine:
         if count <= self.match_points:
             return np.arange(count)
         return np.sort(np.random.default_rng(seed).permutation(count)[: self.match_points])
+
+    def _matchable_of(self, model_id: str) -> Matchable:
+        """The model's key points that take part in matching (cached): at most
+        ``model_points``, a fixed random subset, since matching cost grows with their number."""
+        if model_id not in self._matchable:
+            entry = self.library[model_id]
+            rows = np.arange(entry.num_keypoints)
+            if self.model_points is None or len(rows) <= self.model_points:
+                self._matchable[model_id] = Matchable(rows, entry.features, entry.keypoints)
+            else:
+                rows = np.sort(np.random.default_rng(0).permutation(rows)[: self.model_points])
+                self._matchable[model_id] = Matchable(
+                    rows, entry.features[rows], entry.keypoints[rows]
+                )
+        return self._matchable[model_id]
 
     def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
         """The model's surface check and its sample for the coverage check (cached)."""

@@ -27,7 +27,7 @@ class TrainConfig(BaseModel):
     batch_size: int = Field(2, ge=1)
     learning_rate: float = Field(1e-3, gt=0)
     tau_ncc: float = Field(0.04, gt=0)
-    rotation: Literal["upright", "yaw-bin", "so3"] = "upright"
+    rotation: Literal["upright", "yaw-bin", "yaw-quarter", "so3"] = "upright"
     procedural: int = Field(0, ge=0, description="procedural chairs added to the training shapes")
     seed: int = 0
     validate_every: int = Field(100, ge=1)

@@ -9,8 +9,9 @@
 Both inputs get an independent random rotation (augmentation), so the features learn to ignore
 orientation: ``upright`` rotations (any yaw about the up axis, tilted by at most 10 degrees)
 for a robot that knows gravity, ``yaw-bin`` rotations (yaw within +-22.5 degrees of the
-canonical heading, same tilt: the query is then tried at 8 headings, 45 degrees apart), or any
-rotation (``so3``). Each sample keeps the *aligned* position of every voxel (the frame
+canonical heading, same tilt: the query is then tried at 8 headings, 45 degrees apart),
+``yaw-quarter`` (+-45 degrees: 4 headings, half the query's feature cost), or any rotation
+(``so3``). Each sample keeps the *aligned* position of every voxel (the frame
 positives were found in), which the loss uses to pick negatives far from any positive.
 """
 
@@ -30,19 +31,20 @@ from catalign.geometry.sampling import subsample, voxel_grid
 from catalign.geometry.se3 import axis_angle, invert, random_rotation, transform
 
 PairKind = Literal["same", "cross"]
-RotationMode = Literal["upright", "yaw-bin", "so3"]
-YAW_BIN_DEG = 22.5
+RotationMode = Literal["upright", "yaw-bin", "yaw-quarter", "so3"]
+# Headings a query is tried at for each binned mode; training yaws span one bin, +-180/n degrees.
+YAW_BINS = {"yaw-bin": 8, "yaw-quarter": 4}
 MODEL_UP = np.array([0.0, 1.0, 0.0])
 
 
 def augmentation_rotation(
     rng: np.random.Generator, mode: RotationMode, max_tilt_deg: float = 10.0
 ) -> np.ndarray:
-    """A random rotation: yaw about +Y with a small tilt (any yaw for ``upright``, within
-    +-``YAW_BIN_DEG`` for ``yaw-bin``), or uniform (``so3``)."""
+    """A random rotation: yaw about +Y with a small tilt (any yaw for ``upright``, within half a
+    bin of :data:`YAW_BINS` for the binned modes), or uniform (``so3``)."""
     if mode == "so3":
         return random_rotation(rng)
-    max_yaw = np.pi if mode == "upright" else np.radians(YAW_BIN_DEG)
+    max_yaw = np.pi / YAW_BINS.get(mode, 1)
     heading = rng.uniform(0, 2 * np.pi)
     tilt_axis = np.array([np.cos(heading), 0.0, np.sin(heading)])
     tilt = axis_angle(tilt_axis, np.radians(rng.uniform(0, max_tilt_deg)))

@@ -1,0 +1,142 @@
+"""Speed against accuracy: the evaluation's test cases under several engine settings.
+
+Each setting (``name=value`` engine options, comma-separated; ``default`` for none) registers
+every test case of ``catalign evaluate`` (both settings, every ``--seeds`` seed) through the
+same real library indexes, built once, and is scored exactly as the evaluation scores it. The
+per-query time is the engine's own (the sum of its stage timings), so the table compares
+settings measured in one sitting on the same cases. Prints a markdown table and writes it to
+``bench/results/tradeoff.md``; needs the shared chairs.
+
+    .venv/bin/python bench/tradeoff.py [--seeds 0 1] [--model-dir DIR] \
+        [--configs default keep_headings=2 top_k=5,match_points=500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from _report import load_average, publish
+
+from catalign.data.shapes import SharedChairs
+from catalign.data.views import WORLD_UP
+from catalign.evaluation.protocol import (
+    CaseOutcome,
+    build_cases,
+    frames_of,
+    metric_shapes,
+)
+from catalign.evaluation.report import summarise
+from catalign.features.extractor import LearnedExtractor
+from catalign.registration.base import LibraryShape
+from catalign.registration.engine import Engine
+from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.methods import LEARNED_TOP_K
+
+RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
+RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
+DEFAULT_CONFIGS = [
+    "default",
+    "heading_models=5",
+    "keep_headings=2",
+    "match_points=500",
+    "top_k=5",
+    "heading_models=5,keep_headings=2,match_points=500,top_k=5",
+]
+
+
+def parse_config(text: str) -> dict[str, Any]:
+    """``a=1,b=0.5`` as engine keyword arguments (``default``: none)."""
+    if text == "default":
+        return {}
+    options: dict[str, Any] = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        number = float(value)
+        options[name.strip()] = int(number) if number.is_integer() else number
+    return options
+
+
+def engine_ms(outcome: CaseOutcome) -> float:
+    return sum(outcome.result.timings_ms.values())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--views", type=int, default=2)
+    parser.add_argument("--model-dir", type=Path, default=None)
+    parser.add_argument("--chairs-dir", type=Path, default=None)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    chairs = SharedChairs(args.chairs_dir)
+    extractor = LearnedExtractor(args.model_dir)
+    observed = metric_shapes(chairs, chairs.ids("val"))
+    libraries = {"same": observed, "cross": metric_shapes(chairs, chairs.ids("train"))}
+    frames = frames_of(observed | libraries["cross"])
+    registrars = {}
+    for setting, shapes in libraries.items():
+        registrar = IndexedRegistrar(extractor, name="learned", headings=extractor.headings)
+        registrar.prepare([LibraryShape(i, s.points) for i, s in sorted(shapes.items())])
+        registrars[setting] = registrar
+    cases = {seed: build_cases(observed, args.views, seed) for seed in args.seeds}
+
+    rows = []
+    for text in args.configs:
+        options = {"top_k": LEARNED_TOP_K} | parse_config(text)
+        outcomes: dict[str, list[CaseOutcome]] = {"same": [], "cross": []}
+        for setting, registrar in registrars.items():
+            engine = Engine(
+                extractor, registrar.engine.library, headings=extractor.headings, **options
+            )
+            for seed, seed_cases in cases.items():
+                for case in seed_cases:
+                    result = engine.register(case.points, up=WORLD_UP, seed=seed)
+                    outcomes[setting].append(CaseOutcome(case, result, 0.0))
+        rows.append((text, {s: rates(o, frames, s) for s, o in outcomes.items()}))
+        print(format_row(rows[-1]), flush=True)
+
+    lines = [
+        "# Speed against accuracy (engine settings on the evaluation's cases)",
+        "",
+        f"{platform.machine()}, {torch.get_num_threads()} torch threads, weights "
+        f"{extractor.fingerprint[:12]} ({extractor.headings} headings), seeds "
+        f"{' '.join(map(str, args.seeds))}, {args.views} views per shape, up prior; "
+        f"load average {load_average():.2f} at the end. Rates in %, RRE<10/20/30 deg and "
+        "RTE<5/10 cm; ms is the median engine time per query.",
+        "",
+        "| engine options | same | same MatchAcc | cross | cross MatchAcc | same ms | cross ms |",
+        "|---|---|---|---|---|---|---|",
+        *(format_row(row) for row in rows),
+    ]
+    publish("\n".join(lines) + "\n", args.out)
+
+
+def rates(outcomes: list[CaseOutcome], frames: dict, setting: str) -> dict[str, Any]:
+    """The evaluation's row for these outcomes, with the median engine time."""
+    row = summarise(outcomes, frames, setting)["row"]
+    row["ms"] = float(np.median([engine_ms(o) for o in outcomes]))
+    return row
+
+
+def format_row(row: tuple[str, dict[str, dict[str, Any]]]) -> str:
+    text, by_setting = row
+    cells = [text]
+    for setting in ("same", "cross"):
+        r = by_setting[setting]
+        cells.append("/".join(f"{r[c]:.1f}" for c in RATE_COLUMNS))
+        cells.append(f"{r['MatchAcc']:.1f}")
+    cells += [f"{by_setting[s]['ms']:.0f}" for s in ("same", "cross")]
+    return "| " + " | ".join(cells) + " |"
+
+
+if __name__ == "__main__":
+    main()
