@@ -8,6 +8,7 @@ import pytest
 from catalign.data.shapes import procedural_shape
 from catalign.training.pairs import (
     MODEL_UP,
+    YAW_BINS,
     PairSampler,
     augmentation_rotation,
     positive_pairs,
@@ -87,3 +88,18 @@ def test_samples_are_deterministic_given_the_rng(sampler: PairSampler) -> None:
     two = sampler.sample("cross", "proc-0003", np.random.default_rng(5))
     assert np.array_equal(one.a.coords, two.a.coords)
     assert np.array_equal(one.positives, two.positives)
+
+
+@pytest.mark.parametrize("mode", sorted(YAW_BINS))
+def test_binned_rotations_keep_the_heading_within_half_a_bin(mode: str) -> None:
+    """A binned model only learns headings within half a bin of the canonical one, which is
+    why the engine tries a query at ``YAW_BINS[mode]`` headings; all of the bin gets used."""
+    rng = np.random.default_rng(1)
+    half_bin = 180.0 / YAW_BINS[mode]
+    headings = []
+    for _ in range(400):
+        front = augmentation_rotation(rng, mode) @ np.array([0.0, 0.0, 1.0])  # type: ignore[arg-type]
+        headings.append(np.degrees(np.arctan2(front[0], front[2])))
+    # the small tilt moves the horizontal heading by a fraction of a degree at most
+    assert np.max(np.abs(headings)) <= half_bin + 1.0
+    assert np.max(np.abs(headings)) >= 0.9 * half_bin
