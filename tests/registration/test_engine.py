@@ -16,6 +16,14 @@ from catalign.registration.alignment import mutual_nearest
 from catalign.registration.engine import Engine
 
 SEEDS = (2, 8, 11)
+# FPFH matches are mostly wrong: match more query key points and every model key point, and
+# give RANSAC the budget the classic recipe gets
+FPFH_OPTIONS = {
+    "ransac_factor": 1.5,
+    "ransac_iterations": 100_000,
+    "match_points": 1_000,
+    "model_points": None,
+}
 
 
 @pytest.fixture(scope="module")
@@ -29,8 +37,7 @@ def engine(tmp_path_factory) -> Engine:
     extractor = FPFHExtractor(voxel_size=0.03)
     build([sources], folder / "index", extractor, progress=False)
     library = load(folder / "index", extractor.fingerprint)
-    # FPFH matches are mostly wrong: give RANSAC the budget the classic recipe gets
-    return Engine(extractor, library, ransac_factor=1.5, ransac_iterations=100_000)
+    return Engine(extractor, library, **FPFH_OPTIONS)
 
 
 def _observe(seed: int, pose: np.ndarray) -> np.ndarray:
@@ -106,7 +113,7 @@ def test_a_chair_of_another_size_is_centred_with_a_rigid_pose(engine: Engine) ->
     """A chair 15% larger than its library model (another instance, as far as the engine can
     tell) gets a rigid pose whose model centre sits on the observed chair's centre; without the
     refit at the observed size the rigid fit hugs one side of it by 2 to 4 cm."""
-    rigid_only = Engine(engine.extractor, engine.library, ransac_factor=1.5, exact_fitness=0.0)
+    rigid_only = Engine(engine.extractor, engine.library, **FPFH_OPTIONS, exact_fitness=0.0)
     for seed in SEEDS:
         observed = procedural_shape(seed).scaled(1.15)
         pose = make_pose(
@@ -157,13 +164,8 @@ def test_matching_a_subset_of_model_key_points_still_recovers_the_pose(engine: E
     and the reported correspondences name the right model key points: under the true pose
     several times the share that chance would put next to their observed partners do (FPFH
     matches are mostly wrong: about 5% land there uncapped, under 1% for shuffled pairs)."""
-    capped = Engine(
-        engine.extractor,
-        engine.library,
-        ransac_factor=1.5,
-        ransac_iterations=100_000,
-        model_points=engine.library["proc-0008"].num_keypoints // 2,
-    )
+    options = FPFH_OPTIONS | {"model_points": engine.library["proc-0008"].num_keypoints // 2}
+    capped = Engine(engine.extractor, engine.library, **options)
     pose = make_pose(axis_angle(np.array([0.2, 1.0, 0.1]), 1.1), np.array([0.4, -0.2, 1.3]))
     result = capped.register(_observe(8, pose), seed=0)
     assert result.model_id == "proc-0008"
