@@ -15,10 +15,10 @@ from catalign.registration.engine import Engine
 
 UP = np.array([0.0, 0.0, 1.0])
 SEEDS = range(12)
-# Measured with the shipped checkpoint and engine defaults: 8 of these 12 views are recovered
-# within 2 degrees and 1 cm. The features were trained on ShapeNet chairs only. The floor leaves
-# one case for other BLAS builds.
-MIN_RECOVERED = 7
+# Measured with the shipped checkpoint and engine defaults: 9 of these 12 views are recovered
+# within 2 degrees and 1 cm (0-3, 5-8 and 10). The features were trained on ShapeNet chairs
+# only. The floor leaves one case for other BLAS builds.
+MIN_RECOVERED = 8
 
 
 @pytest.fixture(scope="module")
