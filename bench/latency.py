@@ -7,6 +7,7 @@ recipe, every model tried) runs in the same process on the small libraries, wher
 Prints a markdown table and writes it to ``bench/results/latency.md``.
 
     .venv/bin/python bench/latency.py [--sizes 10 50 200 1000] [--runs 5] [--top-k 10]
+        [--model-dir DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from catalign.registration.engine import Engine
 from catalign.registration.methods import build_registrar
 
 RESULTS = Path(__file__).parent / "results" / "latency.md"
+STAGES = ("validate", "features", "shortlist", "match_ransac", "verify", "icp_score")
 
 
 def query_cloud(seed: int = 5000, count: int = 20_000) -> np.ndarray:
@@ -41,14 +43,16 @@ def query_cloud(seed: int = 5000, count: int = 20_000) -> np.ndarray:
     return subsample(render_view(shape, pose, camera, rng), count, rng)
 
 
-def timed(call, runs: int) -> list[float]:
-    call()  # warm-up: caches, allocator, lazy imports
-    out = []
+def timed(call, runs: int) -> tuple[list[float], list]:
+    """Wall milliseconds of ``runs`` calls after one warm-up (caches, allocator, lazy imports),
+    and what each call returned."""
+    call()
+    times, answers = [], []
     for _ in range(runs):
         started = time.perf_counter()
-        call()
-        out.append((time.perf_counter() - started) * 1e3)
-    return out
+        answers.append(call())
+        times.append((time.perf_counter() - started) * 1e3)
+    return times, answers
 
 
 def main() -> None:
@@ -59,31 +63,35 @@ def main() -> None:
     parser.add_argument("--top-k", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cache", type=Path, default=Path(".cache/bench-libraries"))
+    parser.add_argument("--model-dir", type=Path, default=None, help="weights (model_store/)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    extractor = LearnedExtractor()
+    extractor = LearnedExtractor(args.model_dir)
     points = query_cloud()
-    rows = []
+    rows, stages = [], []
     for size in args.sizes:
         folder = args.cache / f"{extractor.fingerprint[:12]}-{size}"
         if not (folder / "manifest.json").is_file():
             build_procedural(folder, extractor, size, first_seed=0, overwrite=True)
         library = load(folder, extractor.fingerprint)
         engine = Engine(extractor, library, headings=extractor.headings, top_k=args.top_k)
-        ms = timed(lambda e=engine: e.register(points, up=WORLD_UP, seed=0), args.runs)
+        ms, answers = timed(lambda e=engine: e.register(points, up=WORLD_UP, seed=0), args.runs)
         rows.append(("learned engine", size, ms))
+        stages.append((size, {k: np.median([a.timings_ms[k] for a in answers]) for k in STAGES}))
         if size in args.fpfh_sizes:
             fpfh = build_registrar("fpfh")
             fpfh.prepare([LibraryShape(e.model_id, e.points) for e in library])
-            ms = timed(lambda f=fpfh: f.register(points, seed=0), max(1, args.runs // 2))
+            ms, _ = timed(lambda f=fpfh: f.register(points, seed=0), max(1, args.runs // 2))
             rows.append(("FPFH baseline", size, ms))
 
     lines = [
         "# Query latency (20k-point query)",
         "",
         f"{platform.machine()}, {torch.get_num_threads()} torch threads, top_k={args.top_k}, "
-        f"headings={extractor.headings}, {args.runs} timed runs after one warm-up "
+        f"weights {extractor.fingerprint[:12]}, headings={extractor.headings}, "
+        f"{args.runs} timed runs after one warm-up "
         f"(FPFH: {max(1, args.runs // 2)}); load average {load_average():.2f}.",
         "",
         "| method | library size | median ms | p95 ms |",
@@ -91,8 +99,17 @@ def main() -> None:
     ]
     for method, size, ms in rows:
         lines.append(f"| {method} | {size} | {np.median(ms):.0f} | {np.percentile(ms, 95):.0f} |")
+    lines += [
+        "",
+        "Engine stages, median ms of the same runs:",
+        "",
+        "| library size | " + " | ".join(STAGES) + " |",
+        "|---|" + "---|" * len(STAGES),
+    ]
+    for size, medians in stages:
+        lines.append(f"| {size} | " + " | ".join(f"{medians[k]:.0f}" for k in STAGES) + " |")
     table = "\n".join(lines) + "\n"
-    publish(table, RESULTS)
+    publish(table, args.out)
 
 
 if __name__ == "__main__":
