@@ -5,7 +5,7 @@ features is a noisy vote: a chair seen from behind has nearly the inlier count o
 turned round. The surface itself settles it: under the right pose the observed points lie on
 the model. :class:`SurfaceCheck` carries a fixed sample of observed points into the model frame
 under every hypothesis and asks a KD-tree of the model surface how far each lands, with the
-search cut off at the inlier distance so that a miss costs almost nothing, on every core.
+search cut off at the inlier distance so that a miss costs almost nothing.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class SurfaceCheck:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         inverse = np.linalg.inv(poses[:, :3, :3])
         local = np.einsum("hij,hpj->hpi", inverse, probes[None] - poses[:, None, :3, 3])
-        gaps, _ = self.tree.query(local.reshape(-1, 3), distance_upper_bound=distance, workers=-1)
+        gaps, _ = self.tree.query(local.reshape(-1, 3), distance_upper_bound=distance)
         closeness = np.clip(1.0 - (gaps.reshape(len(poses), -1) / distance) ** 2, 0.0, None)
         return closeness.mean(axis=1)
 
@@ -63,7 +63,7 @@ class CoverageCheck:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         posed = np.einsum("hij,pj->hpi", poses[:, :3, :3], surface) + poses[:, None, :3, 3]
         inside = np.all((posed >= self.low) & (posed <= self.high), axis=2)
-        gaps, _ = self.tree.query(posed[inside], distance_upper_bound=distance, workers=-1)
+        gaps, _ = self.tree.query(posed[inside], distance_upper_bound=distance)
         near = np.zeros(inside.shape)
         near[inside] = gaps < distance
         counts = inside.sum(axis=1)
