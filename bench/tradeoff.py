@@ -8,7 +8,7 @@ settings measured in one sitting on the same cases. Prints a markdown table and 
 ``bench/results/tradeoff.md``; needs the shared chairs.
 
     .venv/bin/python bench/tradeoff.py [--seeds 0 1] [--model-dir DIR] \
-        [--configs default keep_headings=2 top_k=5,match_points=500]
+        [--configs default keep_headings=2 match_points=1000,model_points=none]
 """
 
 from __future__ import annotations
@@ -41,21 +41,23 @@ RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
 RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
 DEFAULT_CONFIGS = [
     "default",
-    "heading_models=5",
+    "match_points=1000,model_points=none",  # the defaults before session 4
+    "model_points=1500",
     "keep_headings=2",
-    "match_points=500",
-    "top_k=5",
-    "heading_models=5,keep_headings=2,match_points=500,top_k=5",
+    "heading_models=5",
 ]
 
 
 def parse_config(text: str) -> dict[str, Any]:
-    """``a=1,b=0.5`` as engine keyword arguments (``default``: none)."""
+    """``a=1,b=0.5,c=none`` as engine keyword arguments (``default``: none given)."""
     if text == "default":
         return {}
     options: dict[str, Any] = {}
     for item in text.split(","):
         name, _, value = item.partition("=")
+        if value.strip().lower() == "none":
+            options[name.strip()] = None
+            continue
         number = float(value)
         options[name.strip()] = int(number) if number.is_integer() else number
     return options
