@@ -103,7 +103,7 @@ def test_up_prior_keeps_the_chair_upright(engine: Engine) -> None:
 def _centre_error(result, model_entry, observed, pose) -> float:
     """Distance between the chosen model's bounding-box centre, placed by the answer, and the
     observed chair's, placed by the truth: the evaluation's category-level RTE."""
-    centre_model = (model_entry.bbox_min + model_entry.bbox_max) / 2
+    centre_model = model_entry.centre
     centre_observed = (observed.points.min(axis=0) + observed.points.max(axis=0)) / 2
     placed = transform(centre_model[None], result.pose)[0]
     return float(np.linalg.norm(placed - transform(centre_observed[None], pose)[0]))

@@ -213,12 +213,7 @@ class Engine:
             explained = self._explained_all(hypotheses, probes)
             best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
             scored = [
-                Scored(
-                    hypotheses[i],
-                    explained[i]
-                    * self._covered(hypotheses[i], coverage)
-                    * self._leaning(hypotheses[i], layout),
-                )
+                Scored(hypotheses[i], self._score(hypotheses[i], explained[i], coverage, layout))
                 for i in best_first
             ]
             scored.sort(key=lambda item: -item.score)
@@ -435,13 +430,12 @@ class Engine:
     def _score(
         self,
         hypothesis: Hypothesis,
-        probes: np.ndarray,
+        explained: float,
         coverage: CoverageCheck,
         layout: LayoutCheck | None,
     ) -> float:
-        """How well a model -> observation pose fits: explained share times covered share,
-        nudged by the layout check."""
-        explained = self._explained_all([hypothesis], probes)[0]
+        """How well a model -> observation pose fits: its explained share (from
+        :meth:`_explained_all`) times its covered share, nudged by the layout check."""
         covered = self._covered(hypothesis, coverage)
         return float(explained * covered * self._leaning(hypothesis, layout))
 
@@ -461,7 +455,8 @@ class Engine:
         pose = self._icp(query, hypothesis.model_id, scale, rigid)
         pose[:3, :3] *= scale
         moved = replace(hypothesis, transform=pose)
-        return Scored(moved, self._score(moved, probes, coverage, layout))
+        explained = self._explained_all([moved], probes)[0]
+        return Scored(moved, self._score(moved, explained, coverage, layout))
 
     def _icp(
         self, query: o3d.geometry.PointCloud, model_id: str, scale: float, start: np.ndarray
