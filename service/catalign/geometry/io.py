@@ -3,7 +3,10 @@
 Meshes (``.obj .ply .stl .off .glb``) are read with trimesh, point clouds (``.ply .pcd .npy
 .xyz``) with numpy or Open3D. A ``.ply`` without faces is a point cloud. Every failure (missing,
 unreadable, empty, non-finite) raises :class:`~catalign.errors.ShapeReadError` with a sentence
-that names the file and the problem.
+that names the file and the problem. Before any reader runs,
+:func:`~catalign.geometry.headers.check_header` compares what the file declares with its size
+and the optional limits: a reader that trusted a lying header would allocate memory that the
+file cannot justify, and the server would be killed for it.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from catalign.errors import ShapeReadError
+from catalign.geometry.headers import check_header
 
 MESH_SUFFIXES = frozenset({".obj", ".ply", ".stl", ".off", ".glb"})
 POINT_SUFFIXES = frozenset({".ply", ".pcd", ".npy", ".xyz"})
@@ -52,8 +56,14 @@ def check_points(points: np.ndarray, what: str) -> np.ndarray:
     return arr
 
 
-def read_shape(path: str | Path) -> ShapeData:
-    """Read any supported shape file; meshes keep their faces, point clouds have none."""
+def read_shape(
+    path: str | Path, *, max_points: int | None = None, max_faces: int | None = None
+) -> ShapeData:
+    """Read any supported shape file; meshes keep their faces, point clouds have none.
+
+    ``max_points`` / ``max_faces`` refuse larger files, from their headers where they declare
+    counts, before anything is read; ``None`` checks the headers only against the file's size.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES:
@@ -65,26 +75,49 @@ def read_shape(path: str | Path) -> ShapeData:
         raise ShapeReadError(f"{path}: no such file")
     if path.stat().st_size == 0:
         raise ShapeReadError(f"{path}: the file is empty")
+    check_header(path, max_points=max_points, max_faces=max_faces)
     if suffix == ".npy":
-        return ShapeData(points=_read_npy(path), mesh=None)
-    if suffix == ".xyz":
-        return ShapeData(points=_read_xyz(path), mesh=None)
-    if suffix == ".pcd":
-        return ShapeData(points=_read_pcd(path), mesh=None)
-    return _read_with_trimesh(path)
+        shape = ShapeData(points=_read_npy(path), mesh=None)
+    elif suffix == ".xyz":
+        shape = ShapeData(points=_read_xyz(path), mesh=None)
+    elif suffix == ".pcd":
+        shape = ShapeData(points=_read_pcd(path), mesh=None)
+    else:
+        shape = _read_with_trimesh(path)
+    _check_read_counts(path, shape, max_points, max_faces)
+    return shape
 
 
-def read_points(path: str | Path) -> np.ndarray:
+def read_points(
+    path: str | Path, *, max_points: int | None = None, max_faces: int | None = None
+) -> np.ndarray:
     """Read a file as points: a point cloud's points, or a mesh's vertices."""
-    return read_shape(path).points
+    return read_shape(path, max_points=max_points, max_faces=max_faces).points
 
 
-def read_mesh(path: str | Path) -> MeshData:
+def read_mesh(
+    path: str | Path, *, max_points: int | None = None, max_faces: int | None = None
+) -> MeshData:
     """Read a file that must hold a triangle mesh."""
-    shape = read_shape(path)
+    shape = read_shape(path, max_points=max_points, max_faces=max_faces)
     if shape.mesh is None:
         raise ShapeReadError(f"{path}: holds points but no triangles; a mesh was expected")
     return shape.mesh
+
+
+def _check_read_counts(
+    path: Path, shape: ShapeData, max_points: int | None, max_faces: int | None
+) -> None:
+    """The limits again, on what was read: polygons split into more triangles than declared."""
+    if max_points is not None and len(shape.points) > max_points:
+        raise ShapeReadError(
+            f"{path}: holds {len(shape.points)} points, more than the limit of {max_points} points"
+        )
+    faces = 0 if shape.mesh is None else len(shape.mesh.faces)
+    if max_faces is not None and faces > max_faces:
+        raise ShapeReadError(
+            f"{path}: holds {faces} faces, more than the limit of {max_faces} faces"
+        )
 
 
 def _read_npy(path: Path) -> np.ndarray:
