@@ -32,7 +32,8 @@ class AlignResult:
 
     ``pose`` is a read-only 4x4 float64 matrix mapping model coordinates (of the library entry's
     source file) into the observation: ``x_obs = pose[:3, :3] @ x_model + pose[:3, 3]``. With
-    ``estimate_scale`` the upper-left block is ``scale * rotation``.
+    ``estimate_scale`` the upper-left block is ``scale * rotation``. ``points_set_aside``
+    counts query points the server dropped as far outliers before registering.
 
     Usage::
 
@@ -50,6 +51,7 @@ class AlignResult:
     candidates: list[Candidate]
     timings_ms: dict[str, float] = field(repr=False)
     request_id: str
+    points_set_aside: int = 0
 
     @property
     def rotation(self) -> np.ndarray:
@@ -74,6 +76,7 @@ class AlignResult:
             "candidates": [{"model_id": c.model_id, "score": c.score} for c in self.candidates],
             "timings_ms": dict(self.timings_ms),
             "request_id": self.request_id,
+            "points_set_aside": self.points_set_aside,
         }
 
     @classmethod
@@ -97,6 +100,7 @@ class AlignResult:
             candidates=candidates,
             timings_ms={str(k): _float(timings, k) for k in timings},
             request_id=str(body.get("request_id") or ""),
+            points_set_aside=_int(body, "points_set_aside") if "points_set_aside" in body else 0,
         )
 
 

@@ -207,7 +207,14 @@ def serve(
     ] = None,
     api_key: Annotated[
         str | None,
-        typer.Option(help="Require this X-API-Key (prefer the CATALIGN_API_KEY variable)."),
+        typer.Option(
+            help="Require this X-API-Key; it shows in `ps`, so prefer --api-key-file or the "
+            "CATALIGN_API_KEY variable."
+        ),
+    ] = None,
+    api_key_file: Annotated[
+        Path | None,
+        typer.Option(help="Require the X-API-Key held in this file's first line."),
     ] = None,
     read_only: Annotated[
         bool | None, typer.Option("--read-only", help="Refuse library changes.")
@@ -233,15 +240,19 @@ def serve(
         "workers": workers,
         "queue": queue,
         "api_key": api_key,
+        "api_key_file": api_key_file,
         "read_only": read_only,
     }
     try:
         settings = ServiceSettings(**{k: v for k, v in flags.items() if v is not None})
     except ValidationError as error:
         first = error.errors()[0]
-        name = str(first["loc"][0]) if first["loc"] else "settings"
-        option = f"--{name.replace('_', '-')}" if name in flags else f"CATALIGN_{name.upper()}"
-        typer.echo(f"error: {option}: {first['msg']}", err=True)
+        if first["loc"]:
+            name = str(first["loc"][0])
+            option = f"--{name.replace('_', '-')}" if name in flags else f"CATALIGN_{name.upper()}"
+            typer.echo(f"error: {option}: {first['msg']}", err=True)
+        else:  # a check across settings (the API key given twice, an unreadable key file)
+            typer.echo(f"error: {first['msg'].removeprefix('Value error, ')}", err=True)
         raise typer.Exit(code=2) from None
     with exit_on_error():
         _check_serve_paths(settings.model_dir, settings.library)

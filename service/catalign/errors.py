@@ -11,7 +11,8 @@ message always says what was wrong in words a user can act on, never a stack tra
     │   ├── LibraryCorruptError
     │   ├── LibraryMismatchError  built with other extractor weights
     │   └── ModelNotFoundError
-    └── ConfigError             an unknown method name or a bad setting
+    ├── ConfigError             an unknown method name or a bad setting
+    └── DeadlineExceededError   the request ran out of time or its caller went away
 """
 
 from __future__ import annotations
@@ -51,3 +52,7 @@ class ModelNotFoundError(LibraryError):
 
 class ConfigError(CatalignError):
     """An unknown name or an out-of-range setting."""
+
+
+class DeadlineExceededError(CatalignError):
+    """The work stopped: its deadline passed or its caller stopped waiting for it."""

@@ -104,7 +104,7 @@ def run_server(*, grpc: bool = False, **overrides: object) -> Iterator[Server]:
         host="127.0.0.1",
         port=free_port(),
         grpc_port=free_port() if grpc else 0,
-        torch_threads=1,
+        threads_per_worker=1,
         **overrides,
     )
     app = create_app(settings)

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
+from functools import partial
 
 import pytest
 
 from catalign.api.errors import BusyError
 from catalign.api.metrics import Metrics
 from catalign.api.pool import WorkPool
+from catalign.deadline import Deadline
+from catalign.errors import DeadlineExceededError
+from catalign.threads import limit_threads
 
 
 def test_admission_is_bounded_and_slots_come_back() -> None:
@@ -35,3 +40,110 @@ def test_admission_is_bounded_and_slots_come_back() -> None:
         pool.shutdown()
 
     asyncio.run(scenario())
+
+
+def checking_until_stopped(deadline: Deadline, started: threading.Event) -> str:
+    """A job that works in small steps and checks its deadline between them, as the engine does."""
+    started.set()
+    for _ in range(2_000):
+        deadline.check()
+        time.sleep(0.005)
+    return "finished"
+
+
+def test_a_deadline_answers_at_once_and_stops_the_running_job() -> None:
+    started, stopped = threading.Event(), threading.Event()
+
+    def job(deadline: Deadline) -> str:
+        try:
+            return checking_until_stopped(deadline, started)
+        finally:
+            stopped.set()
+
+    async def scenario() -> None:
+        pool = WorkPool(workers=1, queue=0, metrics=Metrics())
+        deadline = Deadline(0.2)
+        began = time.monotonic()
+        with pytest.raises(DeadlineExceededError, match=r"deadline of 0\.2 s"):
+            await pool.run(job, deadline, deadline=deadline)
+        assert time.monotonic() - began < 1.0  # not the job's 10 s
+        assert await asyncio.to_thread(stopped.wait, 2.0)  # the worker gave its thread back
+        await asyncio.sleep(0.05)
+        assert pool._admitted == 0 and pool._running == 0
+        pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_a_caller_that_goes_away_stops_the_running_job() -> None:
+    started, stopped = threading.Event(), threading.Event()
+
+    def job(deadline: Deadline) -> str:
+        try:
+            return checking_until_stopped(deadline, started)
+        finally:
+            stopped.set()
+
+    async def scenario() -> None:
+        pool = WorkPool(workers=1, queue=0, metrics=Metrics())
+        deadline = Deadline(60.0)
+        waiting = asyncio.ensure_future(pool.run(job, deadline, deadline=deadline))
+        assert await asyncio.to_thread(started.wait, 2.0)
+        waiting.cancel()  # e.g. the HTTP client disconnected
+        with pytest.raises(asyncio.CancelledError):
+            await waiting
+        assert await asyncio.to_thread(stopped.wait, 2.0)
+        with pytest.raises(DeadlineExceededError, match="went away"):
+            deadline.check()
+        pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_a_job_whose_deadline_passed_in_the_queue_never_runs() -> None:
+    release = threading.Event()
+    ran: list[int] = []
+
+    async def scenario() -> None:
+        pool = WorkPool(workers=1, queue=1, metrics=Metrics())
+        blocking = asyncio.ensure_future(pool.run(release.wait))
+        await asyncio.sleep(0.05)
+        with pytest.raises(DeadlineExceededError):
+            await pool.run(ran.append, 1, deadline=Deadline(0.1))
+        release.set()
+        assert await blocking is True
+        await asyncio.sleep(0.1)
+        assert ran == []
+        assert await pool.run(ran.append, 2, deadline=Deadline(5.0)) is None
+        assert ran == [2]
+        pool.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_workers_run_with_the_thread_limits_of_their_share() -> None:
+    """Each worker thread gets its thread-pool limits once, before its first job."""
+    import open3d
+    import torch
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def limits() -> tuple[int, list[int], int]:
+        counts = [pool["num_threads"] for pool in threadpool_info()]
+        return torch.get_num_threads(), counts, open3d.utility.get_max_threads()
+
+    async def scenario() -> None:
+        pool = WorkPool(
+            workers=2, queue=0, metrics=Metrics(), initializer=partial(limit_threads, 1, total=2)
+        )
+        torch_threads, counts, open3d_threads = await pool.run(limits)
+        assert torch_threads == 1 and counts and set(counts) == {1}
+        assert open3d_threads == 2
+        pool.shutdown()
+
+    saved = torch.get_num_threads(), threadpool_info(), open3d.utility.get_max_threads()
+    try:
+        asyncio.run(scenario())
+    finally:  # the limits are process-wide: give the other tests theirs back
+        torch.set_num_threads(saved[0])
+        threadpool_limits(limits={pool["prefix"]: pool["num_threads"] for pool in saved[1]})
+        open3d.utility.set_max_threads(saved[2])

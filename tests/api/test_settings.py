@@ -58,3 +58,27 @@ def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
     assert bad_port.exit_code == 2 and "--port" in bad_port.output
     no_weights = runner.invoke(app, ["serve", "--model-dir", str(tmp_path)])
     assert no_weights.exit_code == 2 and "no trained weights" in no_weights.output
+
+
+def test_the_api_key_comes_from_the_environment_or_a_file(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("CATALIGN_API_KEY", "from-the-environment")
+    assert ServiceSettings().api_key.get_secret_value() == "from-the-environment"
+    monkeypatch.delenv("CATALIGN_API_KEY")
+    key_file = tmp_path / "key"
+    key_file.write_text("from-a-file-123\nsecond line ignored\n")
+    monkeypatch.setenv("CATALIGN_API_KEY_FILE", str(key_file))
+    assert ServiceSettings().api_key.get_secret_value() == "from-a-file-123"
+    with pytest.raises(ValidationError, match="not both"):
+        ServiceSettings(api_key="another-key-456")
+    key_file.write_text("short\n")
+    with pytest.raises(ValidationError, match="at least 8"):
+        ServiceSettings()
+
+
+def test_serve_names_an_unreadable_key_file(tmp_path: Path) -> None:
+    missing = tmp_path / "no-such-key"
+    result = CliRunner().invoke(app, ["serve", "--api-key-file", str(missing)])
+    assert result.exit_code == 2
+    assert f"cannot read the API key file {missing}" in result.output

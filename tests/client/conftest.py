@@ -27,6 +27,7 @@ def _align_answer(**overrides: Any) -> dict[str, Any]:
         "inlier_rmse": 0.012,
         "num_inliers": 812,
         "inlier_ratio": 0.64,
+        "points_set_aside": 3,
         "candidates": [{"model_id": "chair_0042", "score": 0.91}, {"model_id": "c7", "score": 0.4}],
         "timings_ms": {"features": 41.5, "ransac": 12.0},
         "request_id": "req-123",

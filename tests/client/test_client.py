@@ -236,7 +236,7 @@ def test_align_result_is_typed_with_a_numpy_pose(make_api, align_answer):
     np.testing.assert_allclose(result.translation, [0.5, -0.25, 1.0])
     assert result.scale == 2.0
     assert (result.model_id, result.request_id) == ("chair_0042", "req-123")
-    assert result.num_inliers == 812
+    assert result.num_inliers == 812 and result.points_set_aside == 3
     assert (result.fitness, result.inlier_rmse, result.inlier_ratio) == (0.91, 0.012, 0.64)
     assert result.candidates == [Candidate("chair_0042", 0.91), Candidate("c7", 0.4)]
     assert result.timings_ms == {"features": 41.5, "ransac": 12.0}

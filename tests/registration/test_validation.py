@@ -6,8 +6,14 @@ import pytest
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import random_camera, random_object_pose, render_view
 from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation
-from catalign.registration.validation import validate_cloud
+from catalign.registration.validation import (
+    FAR_RADIUS_M,
+    FINE_CELLS,
+    MAX_VOXELS,
+    validate_cloud,
+)
 
 VOXEL = 0.025
 
@@ -20,13 +26,27 @@ def box_surface(rng: np.random.Generator, n: int, extents=(0.4, 0.6, 0.3)) -> np
     return points * np.asarray(extents)
 
 
-def test_accepts_lists_and_float32_and_returns_float64(rng):
+def test_accepts_lists_and_float32_and_returns_fine_centroids(rng):
     points = box_surface(rng, 3000)
-    for given in (points.tolist(), points.astype(np.float32), points):
-        cloud = validate_cloud(given, voxel_size=VOXEL)
-        assert cloud.dtype == np.float64 and cloud.shape == (3000, 3)
-        np.testing.assert_allclose(cloud, points, atol=1e-6)
-    assert validate_cloud(points, voxel_size=VOXEL) is not points  # a copy the caller may keep
+    expected, _ = voxel_downsample(points, VOXEL / FINE_CELLS)
+    for given in (points.tolist(), points):
+        checked = validate_cloud(given, voxel_size=VOXEL)
+        assert checked.points.dtype == np.float64 and checked.received == 3000
+        assert checked.set_aside == 0
+        np.testing.assert_allclose(checked.points, expected)
+        assert checked.voxels == len(voxel_downsample(points, VOXEL)[0])
+    single = validate_cloud(points.astype(np.float32), voxel_size=VOXEL)
+    assert single.points.dtype == np.float64
+    assert abs(len(single.points) - len(expected)) < 0.02 * len(expected)  # rounding at edges
+
+
+def test_a_dense_scan_costs_what_a_sparse_one_does(rng):
+    """The engine gets at most FINE_CELLS³ points per voxel, however dense the scan."""
+    sparse = box_surface(rng, 3_000)
+    dense = box_surface(rng, 300_000)
+    checked = validate_cloud(dense, voxel_size=VOXEL)
+    assert len(checked.points) <= FINE_CELLS**3 * checked.voxels
+    assert len(checked.points) < 5 * len(validate_cloud(sparse, voxel_size=VOXEL).points)
 
 
 @pytest.mark.parametrize(
@@ -64,7 +84,7 @@ def test_refuses_more_than_max_points(rng):
     points = box_surface(rng, 1000)
     with pytest.raises(InvalidInputError, match="1000 points, more than the 999 allowed"):
         validate_cloud(points, voxel_size=VOXEL, max_points=999)
-    assert len(validate_cloud(points, voxel_size=VOXEL, max_points=1000)) == 1000
+    assert validate_cloud(points, voxel_size=VOXEL, max_points=1000).received == 1000
 
 
 def test_refuses_a_bad_voxel_size(rng):
@@ -99,7 +119,7 @@ def test_refuses_a_line(rng, noise: float):
 def test_accepts_a_large_plane_with_an_object_on_it(rng):
     """Thin relative to its size (2.7 % of the extent) but with relief of many voxels: a wall or
     floor with a 30 cm box in front of it can still be registered."""
-    floor = np.c_[rng.uniform(-2.0, 2.0, size=(100_000, 2)), np.zeros(100_000)]
+    floor = np.c_[rng.uniform(-1.2, 1.2, size=(100_000, 2)), np.zeros(100_000)]
     validate_cloud(np.r_[floor, box_surface(rng, 20_000, (0.3, 0.3, 0.3))], voxel_size=VOXEL)
 
 
@@ -109,4 +129,47 @@ def test_accepts_partial_views_of_procedural_chairs():
         rng = np.random.default_rng(seed)
         pose = random_object_pose(rng, "upright", height=shape.height / 2)
         points = render_view(shape, pose, random_camera(pose[:3, 3], rng), rng)
-        assert validate_cloud(points, voxel_size=VOXEL).shape == points.shape
+        checked = validate_cloud(points, voxel_size=VOXEL)
+        assert checked.received == len(points) and checked.set_aside == 0
+
+
+def chair_view(seed: int = 3) -> np.ndarray:
+    shape = procedural_shape(seed)
+    rng = np.random.default_rng(seed)
+    pose = random_object_pose(rng, "upright", height=shape.height / 2)
+    return render_view(shape, pose, random_camera(pose[:3, 3], rng), rng)
+
+
+@pytest.mark.parametrize("far", [[30_000.0, 0.0, 0.0], [3.4e38, -3.4e38, 3.4e38], [1e308] * 3])
+def test_sets_aside_a_far_point_and_counts_it(far: list[float]):
+    """A depth sensor's stray return (30 km, float32's maximum) is dropped, not hashed."""
+    view = chair_view()
+    checked = validate_cloud(np.r_[view, [far]], voxel_size=VOXEL)
+    assert checked.set_aside == 1 and checked.received == len(view) + 1
+    assert np.abs(checked.points).max() < 10
+
+
+def test_refuses_a_cloud_mostly_far_from_its_centre(rng):
+    """Two chairs 30 m apart are not one chair: refused with the reason, not voxelised."""
+    view = chair_view()
+    with pytest.raises(InvalidInputError, match=f"more than {FAR_RADIUS_M:g} m from the"):
+        validate_cloud(np.r_[view, view + np.array([30.0, 0.0, 0.0])], voxel_size=VOXEL)
+
+
+def test_refuses_a_cloud_in_millimetres():
+    with pytest.raises(InvalidInputError, match="in metres"):
+        validate_cloud(chair_view() * 1000.0, voxel_size=VOXEL)
+
+
+def test_refuses_a_cloud_far_from_the_origin():
+    with pytest.raises(InvalidInputError, match="from the origin"):
+        validate_cloud(chair_view() + 1e9, voxel_size=VOXEL)
+
+
+@pytest.mark.parametrize("count", [60_000, 500_000])
+def test_refuses_a_volume_of_random_points_quickly(rng, count: int):
+    """Random points filling a 2 m cube (the denial of service: minutes and 10 GB before) are
+    more voxels than any chair view, and refused before any feature is computed."""
+    cube = rng.uniform(0.0, 2.0, size=(count, 3))
+    with pytest.raises(InvalidInputError, match=f"at most {MAX_VOXELS}"):
+        validate_cloud(cube, voxel_size=VOXEL)

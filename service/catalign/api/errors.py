@@ -10,7 +10,9 @@ The service adds a few errors of its own to catalign's hierarchy (:mod:`catalign
         ├── UnsupportedMediaTypeError                415 unsupported_media_type
         ├── UnauthorizedError                        401 unauthorized
         ├── ReadOnlyError                            403 read_only
-        └── BusyError                                503 busy (with Retry-After)
+        ├── BusyError                                503 busy (with Retry-After)
+        └── ClientGoneError                          499 client_closed_request
+    DeadlineExceededError (catalign.errors)          503 deadline_exceeded
 
 :data:`ERROR_TABLE` maps every class to its status, code and gRPC status name (the most
 specific class wins); every answer has the body ``{"error": {"code", "message"}, "request_id"}``.
@@ -31,6 +33,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from catalign.errors import (
     CatalignError,
     ConfigError,
+    DeadlineExceededError,
     DegenerateInputError,
     InvalidInputError,
     LibraryError,
@@ -69,6 +72,10 @@ class BusyError(ServiceError):
         self.retry_after = retry_after
 
 
+class ClientGoneError(ServiceError):
+    """The client disconnected before its answer was ready (logged; nobody reads the answer)."""
+
+
 class ModelExistsError(InvalidInputError):
     """A model with this id is already in the library."""
 
@@ -103,6 +110,8 @@ ERROR_TABLE: tuple[tuple[type[Exception], ErrorKind], ...] = (
     (UnauthorizedError, ErrorKind(401, "unauthorized", "UNAUTHENTICATED")),
     (ReadOnlyError, ErrorKind(403, "read_only", "PERMISSION_DENIED")),
     (BusyError, ErrorKind(503, "busy", "RESOURCE_EXHAUSTED")),
+    (DeadlineExceededError, ErrorKind(503, "deadline_exceeded", "DEADLINE_EXCEEDED")),
+    (ClientGoneError, ErrorKind(499, "client_closed_request", "CANCELLED")),
 )
 
 # Errors Starlette raises itself (unknown route, wrong method), by status.

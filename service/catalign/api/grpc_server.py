@@ -57,7 +57,7 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
             )
             self.service.ensure_capacity()
             query = decode_binary(request.points, options, self.settings.max_points)
-            result = await self.service.register(query)
+            result = await self.service.register(query, deadline_s=context.time_remaining())
             return catalign_pb2.RegisterReply(
                 model_id=result.model_id,
                 pose=[float(v) for v in result.pose.reshape(-1)],
@@ -66,6 +66,7 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                 inlier_rmse=result.inlier_rmse,
                 num_inliers=result.num_inliers,
                 inlier_ratio=result.inlier_ratio,
+                points_set_aside=result.points_set_aside,
                 candidates=[
                     catalign_pb2.Candidate(model_id=c.model_id, score=c.score)
                     for c in result.candidates

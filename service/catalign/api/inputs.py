@@ -3,7 +3,8 @@
 Every way of sending points ends in the same :class:`PointQuery`, so the three encodings cannot
 drift apart. Checks that need no geometry (JSON syntax, shapes, NaN, the byte count, the point
 limit) happen here, before a worker is spent; whether the cloud can fix a pose is the engine's.
-Uploaded files are spooled to a temporary folder that exists for the request's lifetime.
+Uploaded files are spooled to a folder of the server's spool (:mod:`catalign.api.spool`) that
+exists for the request's lifetime.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import tempfile
 from collections.abc import AsyncIterator, Mapping
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -27,6 +27,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from catalign.api.errors import UnsupportedMediaTypeError, describe_validation_errors
 from catalign.api.schemas import RegisterOptions
+from catalign.api.spool import Spool
 from catalign.errors import InvalidInputError, ShapeReadError
 
 JSON = "application/json"
@@ -106,6 +107,12 @@ def check_cloud(points: np.ndarray, max_points: int) -> np.ndarray:
 
 def decode_json(body: bytes, max_points: int) -> PointQuery:
     """A JSON body ``{"points": [[x, y, z], ...], ...options}``."""
+    # Each row opens a bracket; counting them (a fast scan) refuses too many points before
+    # parsing builds millions of Python floats (about 200 bytes per point).
+    if body.count(b"[") > max_points + 2:  # the list of rows and ``up`` open one each
+        raise InvalidInputError(
+            f"the point cloud has more than {max_points} points, the limit; downsample it first"
+        )
     try:
         data = json.loads(body)
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -160,8 +167,10 @@ async def decode_body(request: Request, options: RegisterOptions, max_points: in
 
 
 @asynccontextmanager
-async def read_upload(request: Request, suffixes: frozenset[str]) -> AsyncIterator[Upload]:
-    """Spool the multipart field ``file`` to a temporary folder for the request's duration."""
+async def read_upload(
+    request: Request, suffixes: frozenset[str], spool: Spool
+) -> AsyncIterator[Upload]:
+    """Spool the multipart field ``file`` to a folder of ``spool`` for the request's duration."""
     if media_type(request) != MULTIPART:
         raise UnsupportedMediaTypeError(f"send the file as {MULTIPART} with a 'file' field")
     try:
@@ -181,8 +190,8 @@ async def read_upload(request: Request, suffixes: frozenset[str]) -> AsyncIterat
             )
         name = filename if _SAFE_NAME.fullmatch(filename) else f"upload{suffix}"
         fields = {k: v for k, v in form.items() if isinstance(v, str)}
-        with tempfile.TemporaryDirectory(prefix="catalign-upload-") as folder:
-            path = Path(folder) / name
+        with spool.temporary_folder() as folder:
+            path = folder / name
             await run_in_threadpool(_copy, upload.file, path)
             yield Upload(path=path, filename=filename, fields=fields)
     finally:

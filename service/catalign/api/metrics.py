@@ -75,6 +75,13 @@ class Metrics:
             "Jobs refused because the queue was full.",
             registry=self.registry,
         )
+        self.stopped = Counter(
+            "catalign_deadline_exceeded",
+            "Registrations stopped before their answer: past the deadline (reason=deadline) "
+            "or their client went away (reason=client_gone).",
+            ["reason"],
+            registry=self.registry,
+        )
         self.library_models = Gauge(
             "catalign_library_models",
             "Models in the library being served.",

@@ -10,6 +10,7 @@ request id, answered 500 ``internal`` without details.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 import time
@@ -84,6 +85,9 @@ class RequestContextMiddleware:
                 )
             else:
                 await self.app(scope, receive_limited, send_with_id)
+        except asyncio.CancelledError:
+            status = 499  # the server is stopping; nobody will read an answer
+            raise
         except Exception as error:
             if isinstance(error, PayloadTooLargeError):
                 logger.info("request_id=%s %s", request_id, error)

@@ -2,9 +2,16 @@
 
 Registrations take seconds of CPU; running them on the event loop would stall every other
 request, and queueing them without bound would let latency grow without bound. :class:`WorkPool`
-runs jobs on ``workers`` threads and admits at most ``workers + queue`` jobs at once; one more is
-refused immediately with :class:`~catalign.api.errors.BusyError` (503 with ``Retry-After``).
-A job whose caller went away before it started is dropped and gives its slot back.
+runs jobs on ``workers`` threads and admits at most ``workers + queue`` requests at once; one more
+is refused immediately with :class:`~catalign.api.errors.BusyError` (503 with ``Retry-After``,
+the time the queue ahead takes to drain at the measured mean job duration). A request takes its
+:class:`Slot` with :meth:`WorkPool.reserve` *before* its body is read, so a crowd of clients
+cannot make the server read and hold more bodies than it will ever run.
+
+A job may carry a :class:`~catalign.deadline.Deadline`. One that expired while it waited is
+dropped without running; when it expires while the job runs, or the caller goes away, the
+caller is answered at once and the deadline is cancelled, so the job stops at its next check
+and frees its worker. ``initializer`` runs once in each worker thread (thread-pool limits).
 """
 
 from __future__ import annotations
@@ -15,23 +22,62 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import nullcontext
 from typing import TypeVar
 
 from catalign.api.errors import BusyError
 from catalign.api.metrics import Metrics
+from catalign.deadline import Deadline
+from catalign.errors import DeadlineExceededError
 
 T = TypeVar("T")
 _SMOOTHING = 0.2  # weight of the latest job in the mean job duration
 
 
+class Slot:
+    """One admitted request's place in the pool: taken before its body is read, given back
+    when both the request and its job are done (a job may outlive a request answered 503)."""
+
+    def __init__(self, release: Callable[[], None]) -> None:
+        self._release = release
+        self._holders = 1
+        self._lock = threading.Lock()
+
+    def hold(self) -> None:
+        with self._lock:
+            self._holders += 1
+
+    def release(self) -> None:
+        with self._lock:
+            self._holders -= 1
+            last = self._holders == 0
+        if last:
+            self._release()
+
+    def __enter__(self) -> Slot:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
 class WorkPool:
     """``workers`` threads, at most ``queue`` jobs waiting; ``run`` awaits a job's result."""
 
-    def __init__(self, workers: int, queue: int, metrics: Metrics) -> None:
+    def __init__(
+        self,
+        workers: int,
+        queue: int,
+        metrics: Metrics,
+        *,
+        initializer: Callable[[], None] | None = None,
+    ) -> None:
         self.workers = workers
         self.capacity = workers + queue
         self._metrics = metrics
-        self._executor = ThreadPoolExecutor(workers, thread_name_prefix="catalign-worker")
+        self._executor = ThreadPoolExecutor(
+            workers, thread_name_prefix="catalign-worker", initializer=initializer
+        )
         self._lock = threading.Lock()
         self._admitted = 0
         self._running = 0
@@ -45,16 +91,48 @@ class WorkPool:
         """Seconds until a slot is likely free: the queue drained at the mean job duration."""
         return max(1, math.ceil(self._mean_s * self.capacity / self.workers))
 
-    async def run(self, fn: Callable[..., T], *args: object) -> T:
-        """Run ``fn(*args)`` on a worker; raise BusyError at once when no slot is free."""
+    def reserve(self) -> Slot:
+        """A slot for one request (a context manager), or BusyError at once when none is free."""
         self._admit()
+        return Slot(self._release)
+
+    async def run(
+        self,
+        fn: Callable[..., T],
+        *args: object,
+        slot: Slot | None = None,
+        deadline: Deadline | None = None,
+    ) -> T:
+        """Run ``fn(*args)`` on a worker, in ``slot`` or a new one (BusyError at once when none
+        is free); DeadlineExceededError when ``deadline`` passes first (``fn`` should check it
+        too)."""
+        with self.reserve() if slot is None else nullcontext(slot) as held:
+            held.hold()
+            try:
+                future = self._executor.submit(self._job, fn, args, deadline)
+            except BaseException:
+                held.release()
+                raise
+            future.add_done_callback(lambda _: held.release())
+        waiting = asyncio.wrap_future(future)
+        if deadline is None:
+            return await waiting
+        # An answer nobody awaits any more is still collected, so asyncio does not warn.
+        waiting.add_done_callback(lambda done: done.cancelled() or done.exception())
+        remaining = deadline.remaining
         try:
-            future = self._executor.submit(self._job, fn, args)
-        except BaseException:
-            self._release()
+            return await asyncio.wait_for(
+                asyncio.shield(waiting), None if math.isinf(remaining) else remaining
+            )
+        except TimeoutError:
+            message = f"the request ran past its deadline of {deadline.seconds:g} s"
+            deadline.cancel(message)
+            future.cancel()  # not started yet: dropped now
+            raise DeadlineExceededError(message) from None
+        except asyncio.CancelledError:
+            deadline.cancel("the caller went away")
+            future.cancel()
             raise
-        future.add_done_callback(lambda _: self._release())
-        return await asyncio.wrap_future(future)
 
     def submit(self, fn: Callable[..., T], *args: object) -> Future[T]:
         """Run ``fn(*args)`` on a worker outside admission control (warm-up)."""
@@ -64,7 +142,7 @@ class WorkPool:
         self._executor.shutdown(wait=True, cancel_futures=True)
 
     def ensure_capacity(self) -> None:
-        """Raise BusyError now if a job would be refused (checked again on admission)."""
+        """Raise BusyError now if a job would be refused (checked again when it is admitted)."""
         if self.full:
             raise self._refuse()
 
@@ -83,7 +161,9 @@ class WorkPool:
             retry_after=self.retry_after(),
         )
 
-    def _job(self, fn: Callable[..., T], args: tuple[object, ...]) -> T:
+    def _job(self, fn: Callable[..., T], args: tuple[object, ...], deadline: Deadline | None) -> T:
+        if deadline is not None:
+            deadline.check()  # it waited past its deadline in the queue: dropped unrun
         with self._lock:
             self._running += 1
             self._publish()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
 from typing_extensions import TypeAliasType
 
 if TYPE_CHECKING:
@@ -25,30 +25,42 @@ MAX_TOP_K = 10_000
 JsonData = TypeAliasType(
     "JsonData", "str | int | float | bool | list[JsonData] | dict[str, JsonData] | None"
 )
+StrictFloat = Annotated[float, Strict()]  # ints pass, strings and booleans do not
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 
 
 class RegisterOptions(BaseModel):
-    """Options of one registration (JSON body fields, or query parameters for other bodies)."""
+    """Options of one registration (JSON body fields, or query parameters for other bodies).
+
+    Strict: ``"seed": "7"`` or ``"estimate_scale": "yes"`` is refused, not guessed at (query
+    parameters are typed by the route before they get here).
+    """
 
     model_config = ConfigDict(extra="forbid")
 
     top_k: int | None = Field(
         default=None,
+        strict=True,
         ge=1,
         le=MAX_TOP_K,
         description="Library models to register against, best retrieval scores first "
         "(default: the server's setting, normally every model).",
     )
-    up: tuple[float, float, float] | None = Field(
+    up: tuple[StrictFloat, StrictFloat, StrictFloat] | None = Field(
         default=None,
         description="The world's up direction when the chair stands upright (e.g. [0, 0, 1]); "
         "restricts poses to upright ones.",
     )
-    estimate_scale: bool = Field(default=False, description="Also estimate a uniform scale.")
+    estimate_scale: bool = Field(
+        default=False, strict=True, description="Also estimate a uniform scale."
+    )
     seed: int = Field(
-        default=0, ge=0, le=MAX_SEED, description="RANSAC seed: same request, same answer."
+        default=0,
+        strict=True,
+        ge=0,
+        le=MAX_SEED,
+        description="RANSAC seed: same request, same answer.",
     )
 
     @field_validator("up")
@@ -90,6 +102,10 @@ class RegisterResponse(BaseModel):
     inlier_rmse: float
     num_inliers: int
     inlier_ratio: float
+    points_set_aside: int = Field(
+        description="Points of the query farther than 3 m from its median, dropped before "
+        "registering (stray sensor returns); the statistics are over the points kept."
+    )
     candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
     timings_ms: dict[str, float] = Field(
         description="Milliseconds per stage (queue, validate, features, shortlist, "
@@ -107,6 +123,7 @@ class RegisterResponse(BaseModel):
             inlier_rmse=result.inlier_rmse,
             num_inliers=result.num_inliers,
             inlier_ratio=result.inlier_ratio,
+            points_set_aside=result.points_set_aside,
             candidates=[
                 CandidatePublic(model_id=c.model_id, score=c.score) for c in result.candidates
             ],

@@ -6,8 +6,10 @@ is written with :mod:`catalign.library` (atomic on disk), the library is loaded 
 :class:`~catalign.registration.engine.Engine` replaces the old one in a single assignment, so
 requests already running finish on the library they started with. Changes made by another
 process (``catalign library add`` on the served folder) are noticed by the manifest's file stamp
-and loaded before the next request that reads the library. torch and open3d are imported only
-when the service loads, never by the HTTP layer itself.
+and loaded before the next request that reads the library. Every registration runs under a
+:class:`~catalign.deadline.Deadline` of ``deadline_s`` from its arrival, so neither a slow
+request nor a client that went away holds a worker longer than that. torch and open3d are
+imported only when the service loads, never by the HTTP layer itself.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import platform
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,10 +31,13 @@ import catalign
 from catalign.api.errors import EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud
 from catalign.api.metrics import Metrics
-from catalign.api.pool import WorkPool
+from catalign.api.pool import Slot, WorkPool
 from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
-from catalign.errors import CatalignError, ConfigError, ShapeReadError
+from catalign.api.spool import Spool, default_spool_root
+from catalign.deadline import Deadline
+from catalign.errors import CatalignError, ConfigError, DeadlineExceededError, ShapeReadError
+from catalign.threads import limit_threads
 
 if TYPE_CHECKING:
     from catalign.features.extractor import LearnedExtractor
@@ -56,12 +62,20 @@ class RegistrationService:
         self._pool: WorkPool | None = None
         self._changes = asyncio.Lock()
         self._stamp: tuple[int, int, int] | None = None
+        self.spool = Spool(settings.spool_dir or default_spool_root(settings.library))
 
     # life cycle -------------------------------------------------------------------------------
 
     async def start(self) -> None:
         """Load weights and library (off the event loop); errors here stop the server."""
-        self._pool = WorkPool(self.settings.workers, self.settings.queue, self.metrics)
+        threads, workers = self.settings.worker_threads, self.settings.workers
+        self._pool = WorkPool(
+            workers,
+            self.settings.queue,
+            self.metrics,
+            initializer=partial(limit_threads, threads, total=threads * workers),
+        )
+        await asyncio.to_thread(self.spool.open)
         await asyncio.to_thread(self._load)
 
     async def warm_up(self) -> None:
@@ -78,6 +92,7 @@ class RegistrationService:
         self.ready = False
         if self._pool is not None:
             await asyncio.to_thread(self._pool.shutdown)
+        await asyncio.to_thread(self.spool.close)
 
     @property
     def engine(self) -> Engine:
@@ -101,14 +116,35 @@ class RegistrationService:
         """Refuse early (before reading a body) when the queue is already full."""
         self.pool.ensure_capacity()
 
-    async def register(self, query: PointQuery) -> RegistrationResult:
-        """Register a query on a worker; timings gain ``queue``, ``read`` (files) and ``total``."""
-        await self.refresh()
+    def reserve(self) -> Slot:
+        """A place in the worker pool for one request, taken before its body is read."""
+        return self.pool.reserve()
+
+    async def register(
+        self, query: PointQuery, *, slot: Slot | None = None, deadline_s: float | None = None
+    ) -> RegistrationResult:
+        """Register a query on a worker (in ``slot``, or a new one); timings gain ``queue``,
+        ``read`` (files) and ``total``.
+
+        The deadline is the server's ``deadline_s``, or ``deadline_s`` when the caller's is
+        shorter (a gRPC deadline); a caller that stops waiting (a cancelled task) stops the work.
+        """
+        deadline = Deadline(min(self.settings.deadline_s, deadline_s or self.settings.deadline_s))
+        await self.refresh(slot)
         engine = self.engine
         if len(engine.library) == 0:
             raise EmptyLibraryError("the library has no models; add one with POST /models")
         submitted = time.perf_counter()
-        result = await self.pool.run(self._register, engine, query, submitted)
+        try:
+            result = await self.pool.run(
+                self._register, engine, query, submitted, deadline, slot=slot, deadline=deadline
+            )
+        except DeadlineExceededError:
+            self.metrics.stopped.labels("deadline").inc()
+            raise
+        except asyncio.CancelledError:
+            self.metrics.stopped.labels("client_gone").inc()
+            raise
         self.metrics.observe_registration(result.timings_ms, result.inlier_ratio)
         return result
 
@@ -121,8 +157,9 @@ class RegistrationService:
         library = self.library
         return [library[i] for i in library.ids]
 
-    async def refresh(self) -> None:
-        """Load the library again when another process changed it since it was loaded.
+    async def refresh(self, slot: Slot | None = None) -> None:
+        """Load the library again when another process changed it since it was loaded (on a
+        worker, in the caller's ``slot`` when it has one).
 
         A library that no longer loads (rebuilt with other weights, say) is logged and the one
         in memory stays served: a bad edit on disk must not take the service down.
@@ -135,7 +172,7 @@ class RegistrationService:
                 return
             engine = self.engine
             try:
-                library = await self.pool.run(self._reload, engine.extractor)
+                library = await self.pool.run(self._reload, engine.extractor, slot=slot)
             except CatalignError as error:
                 logger.warning("library changed on disk but cannot be loaded: %s", error)
                 self._stamp = stamp
@@ -228,7 +265,7 @@ class RegistrationService:
         from catalign.library.index import load
 
         started = time.perf_counter()
-        extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.torch_threads)
+        extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
         self._stamp = self._manifest_stamp()
         library = load(self.settings.library, extractor.fingerprint)
         self._engine = self._make_engine(extractor, library)
@@ -259,7 +296,9 @@ class RegistrationService:
 
         return Engine(extractor, library, headings=extractor.headings, top_k=self.settings.top_k)
 
-    def _register(self, engine: Engine, query: PointQuery, submitted: float) -> RegistrationResult:
+    def _register(
+        self, engine: Engine, query: PointQuery, submitted: float, deadline: Deadline
+    ) -> RegistrationResult:
         timings = {"queue": (time.perf_counter() - submitted) * 1e3}
         points = query.points
         if points is None:
@@ -267,8 +306,9 @@ class RegistrationService:
 
             assert query.path is not None
             started = time.perf_counter()
+            max_points = self.settings.max_points
             with _shown_as(query.path, query.filename):
-                points = check_cloud(read_points(query.path), self.settings.max_points)
+                points = check_cloud(read_points(query.path, max_points=max_points), max_points)
             timings["read"] = (time.perf_counter() - started) * 1e3
         options = query.options
         result = engine.register(
@@ -277,6 +317,7 @@ class RegistrationService:
             up=None if options.up is None else np.asarray(options.up, dtype=np.float64),
             estimate_scale=options.estimate_scale,
             seed=options.seed,
+            deadline=deadline,
         )
         timings |= result.timings_ms
         timings["total"] = (time.perf_counter() - submitted) * 1e3
@@ -295,11 +336,13 @@ class RegistrationService:
     def _add(
         self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str
     ) -> Library:
+        from catalign.geometry.headers import check_header
         from catalign.library.index import add, load
 
         # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
         with _shown_as(source, upload.filename):
+            check_header(source, max_points=self.settings.max_points)
             add(
                 self.settings.library,
                 [source],

@@ -25,10 +25,16 @@ DEFAULT_MODEL_DIR = Path(catalign.__file__).resolve().parents[2] / "model_store"
 class ServiceSettings(BaseSettings):
     """Settings of the HTTP and gRPC service (environment prefix ``CATALIGN_``).
 
-    ``workers`` threads run registrations; ``queue`` more requests may wait for one, and any
-    request beyond that is refused at once with 503 ``busy``. ``max_body_bytes`` bounds every
-    request body, ``max_points`` every query cloud. ``api_key``, when set, is required in the
-    ``X-API-Key`` header (gRPC: ``x-api-key`` metadata) by every endpoint but the health checks.
+    ``workers`` threads run registrations, each with ``threads_per_worker`` threads for torch,
+    BLAS, OpenMP and Open3D (default: an even share of the cores); ``queue`` more requests may
+    wait for one, and any request beyond that is refused at once with 503 ``busy``. Each
+    registration must finish within ``deadline_s`` of its arrival (queue wait included), or it
+    is stopped and answered 503 ``deadline_exceeded``. ``max_body_bytes`` bounds every request
+    body, ``max_points`` every query cloud and every uploaded file. Uploads are spooled under
+    ``spool_dir`` (default: the library's ``.spool`` folder, or the system's temporary folder
+    when the library is read-only). ``api_key`` (or the first line of ``api_key_file``), when
+    set, is required in the ``X-API-Key`` header (gRPC: ``x-api-key`` metadata) by every
+    endpoint but the health checks.
     """
 
     model_config = SettingsConfigDict(env_prefix="CATALIGN_", extra="forbid", frozen=True)
@@ -40,8 +46,13 @@ class ServiceSettings(BaseSettings):
     grpc_port: int = Field(default=50051, ge=0, le=65535, description="0 disables gRPC.")
     workers: int = Field(default=2, ge=1, le=64, description="Registration threads.")
     queue: int = Field(default=8, ge=0, le=10_000, description="Requests that may wait.")
-    torch_threads: int = Field(default=1, ge=1, le=256, description="torch threads per process.")
+    threads_per_worker: int | None = Field(
+        default=None, ge=1, le=256, description="Numeric threads per worker (None: cores/workers)."
+    )
+    deadline_s: float = Field(default=10.0, gt=0, le=3600, description="Per-request deadline.")
+    spool_dir: Path | None = Field(default=None, description="Where uploads are spooled.")
     api_key: SecretStr | None = None
+    api_key_file: Path | None = Field(default=None, description="A file holding the API key.")
     read_only: bool = False
     max_body_bytes: int = Field(default=64 * MiB, ge=1024, description="Request body limit.")
     max_points: int = Field(default=500_000, ge=1, description="Points a query may have.")
@@ -59,6 +70,20 @@ class ServiceSettings(BaseSettings):
             raise ValueError("an API key needs at least 8 printable characters, no outer spaces")
         return value
 
+    @model_validator(mode="after")
+    def _key_from_file(self) -> ServiceSettings:
+        if self.api_key_file is None:
+            return self
+        if self.api_key is not None:
+            raise ValueError("give the API key once: api_key or api_key_file, not both")
+        try:
+            lines = self.api_key_file.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as error:
+            raise ValueError(f"cannot read the API key file {self.api_key_file}: {error}") from None
+        key = SecretStr(lines[0] if lines else "")
+        object.__setattr__(self, "api_key", self._key_is_usable(key))
+        return self
+
     @field_validator("host")
     @classmethod
     def _host_has_no_scheme(cls, value: str) -> str:
@@ -75,6 +100,13 @@ class ServiceSettings(BaseSettings):
     @property
     def grpc_enabled(self) -> bool:
         return self.grpc_port != 0
+
+    @property
+    def worker_threads(self) -> int:
+        """Numeric threads of each worker: the setting, or an even share of the cores."""
+        from catalign.threads import default_threads_per_worker
+
+        return self.threads_per_worker or default_threads_per_worker(self.workers)
 
     @property
     def capacity(self) -> int:

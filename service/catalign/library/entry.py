@@ -19,9 +19,10 @@ import numpy as np
 
 from catalign.errors import DegenerateInputError, ShapeReadError
 from catalign.geometry.io import MeshData, ShapeData, read_shape
-from catalign.geometry.sampling import sample_surface, subsample
+from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.library.retrieval import global_descriptor
 from catalign.library.sources import SourceFile, unit_factor
+from catalign.registration.validation import MIN_VOXELS
 
 if TYPE_CHECKING:  # the extractor module imports torch; entries only need its interface
     from catalign.features.extractor import FeatureExtractor
@@ -111,6 +112,13 @@ def describe_shape(
     else:
         extent_points = shape.points * factor
         points = subsample(extent_points, num_points, rng)
+    voxels = len(voxel_downsample(points, extractor.voxel_size)[0])
+    if voxels < MIN_VOXELS:
+        raise DegenerateInputError(
+            f"{source}: model {model_id!r} occupies only {voxels} voxels of "
+            f"{extractor.voxel_size:g} m, and a query needs at least {MIN_VOXELS}; a model must "
+            "be at least as large as what it is matched with (is the declared unit right?)"
+        )
     described = extractor.describe(np.ascontiguousarray(points, dtype=np.float64))
     if len(described.keypoints) == 0:
         raise DegenerateInputError(

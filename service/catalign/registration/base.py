@@ -35,6 +35,7 @@ class RegistrationResult:
 
     ``correspondences`` holds the putative matches (query points, model points) the pose was
     estimated from, when the method exposes them; evaluation turns them into MatchAcc.
+    ``points_set_aside`` counts the caller's points dropped as far outliers before registering.
     """
 
     model_id: str
@@ -47,6 +48,7 @@ class RegistrationResult:
     timings_ms: dict[str, float]
     correspondences: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     scale: float = 1.0
+    points_set_aside: int = 0
 
 
 class Registrar(ABC):

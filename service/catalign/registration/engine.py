@@ -33,7 +33,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
@@ -41,6 +41,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.se3 import axis_angle, invert, make_pose
@@ -50,7 +51,12 @@ from catalign.registration.alignment import mutual_count, mutual_nearest, point_
 from catalign.registration.base import Candidate, RegistrationResult
 from catalign.registration.gravity import level_pose, leveller, yaw_ransac
 from catalign.registration.ransac import MODEL_UP, ransac
-from catalign.registration.validation import validate_cloud
+from catalign.registration.validation import (
+    FINE_CELLS,
+    MIN_VOXELS,
+    CheckedCloud,
+    validate_cloud,
+)
 from catalign.registration.verification import CoverageCheck, LayoutCheck, SurfaceCheck, top_offset
 
 reg = o3d.pipelines.registration
@@ -115,7 +121,9 @@ class Engine:
     and a third faster, ``bench/tradeoff.py``), ``verify_top`` (poses, best by the surface
     check, that get the coverage check), ``refine`` (poses that get ICP), ``exact_fitness`` (the
     share of the query within one ICP distance of the model above which the model is taken to
-    be the observed instance itself, and its fitted pose is not recentred).
+    be the observed instance itself, and its fitted pose is not recentred), ``fine_cells``
+    (cells per voxel edge of the grid the query is down-sampled to first; None: not at all),
+    ``pass_voxels`` (query voxels, over all headings, that one forward pass may describe).
     """
 
     def __init__(
@@ -128,7 +136,7 @@ class Engine:
         ransac_factor: float = 2.0,
         icp_factor: float = 1.0,
         up_tolerance_deg: float = 30.0,
-        min_points: int = 50,
+        min_points: int = MIN_VOXELS,
         keep_headings: int = 3,
         ransac_iterations: int = 5_000,
         poses_per_view: int = 8,
@@ -142,6 +150,8 @@ class Engine:
         model_points: int | None = 1_000,
         verify_top: int = 32,
         exact_fitness: float = 0.9,
+        fine_cells: int | None = FINE_CELLS,
+        pass_voxels: int = 48_000,
     ) -> None:
         self.extractor = extractor
         self.library = library
@@ -164,6 +174,8 @@ class Engine:
         self.model_points = model_points
         self.verify_top = verify_top
         self.exact_fitness = exact_fitness
+        self.fine_cells = fine_cells
+        self.pass_voxels = pass_voxels
         self._surfaces: dict[str, o3d.geometry.PointCloud] = {}
         self._checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = {}
         self._top_offsets: dict[str, np.ndarray] = {}
@@ -177,16 +189,25 @@ class Engine:
         up: np.ndarray | None = None,
         estimate_scale: bool = False,
         seed: int = 0,
+        deadline: Deadline | None = None,
     ) -> RegistrationResult:
-        """The best library model for ``points`` and its model -> observation pose."""
+        """The best library model for ``points`` and its model -> observation pose.
+
+        ``deadline`` is checked before every stage and between models: a cancelled or expired
+        one stops the work with :class:`~catalign.errors.DeadlineExceededError`.
+        """
         timings: dict[str, float] = {}
-        with _timed(timings, "validate"):
+        check = (lambda: None) if deadline is None else deadline.check
+        with _timed(timings, "validate", check):
             cloud = validate_cloud(
-                points, voxel_size=self.extractor.voxel_size, min_points=self.min_points
+                points,
+                voxel_size=self.extractor.voxel_size,
+                min_points=self.min_points,
+                fine_cells=self.fine_cells,
             )
             turn = None if up is None else leveller(up)
 
-        with _timed(timings, "features"):
+        with _timed(timings, "features", check):
             views = self._describe(cloud, turn)
             keypoints = views[0].keypoints
             order = np.random.default_rng(seed).permutation(len(keypoints))
@@ -194,21 +215,20 @@ class Engine:
             coverage = CoverageCheck(keypoints, margin=self.ransac_distance)
             layout = None if turn is None else LayoutCheck(keypoints, turn[1])
 
-        with _timed(timings, "shortlist"):
+        with _timed(timings, "shortlist", check):
             candidates = self._shortlist(views, top_k if top_k is not None else self.top_k, turn)
 
-        with _timed(timings, "match_ransac"):
+        with _timed(timings, "match_ransac", check):
             kept = self._consistent_views(
                 candidates[: self.heading_models], views, order, turn, seed
             )
-            hypotheses = [
-                hypothesis
-                for model_id in candidates
-                for view in kept
-                for hypothesis in self._hypotheses(model_id, view, turn, estimate_scale, seed)
-            ]
+            hypotheses = []
+            for model_id in candidates:
+                check()
+                for view in kept:
+                    hypotheses += self._hypotheses(model_id, view, turn, estimate_scale, seed)
 
-        with _timed(timings, "verify"):
+        with _timed(timings, "verify", check):
             # The surface check is cheap: every pose gets it; the coverage check only the best.
             explained = self._explained_all(hypotheses, probes)
             best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
@@ -223,7 +243,7 @@ class Engine:
                 "no pose fits this cloud: its features matched no library model consistently "
                 "(is it a whole object, in metres?)"
             )
-        with _timed(timings, "icp_score"):
+        with _timed(timings, "icp_score", check):
             query = point_cloud(keypoints)
             refined = [
                 self._refine(item, query, probes, coverage, layout)
@@ -252,16 +272,26 @@ class Engine:
                 self.library[hypothesis.model_id].keypoints[hypothesis.matches[:, 1]],
             ),
             scale=_scale_of(hypothesis.transform),
+            points_set_aside=cloud.set_aside,
         )
 
-    def _describe(self, cloud: np.ndarray, turn: np.ndarray | None) -> list[QueryView]:
-        """The query described at every heading, key points back in the observation frame."""
+    def _describe(self, cloud: CheckedCloud, turn: np.ndarray | None) -> list[QueryView]:
+        """The query described at every heading, key points back in the observation frame.
+
+        Headings share forward passes, as many per pass as ``pass_voxels`` allows: one pass for
+        a typical view, several for the largest queries, whose memory they bound (about 5 KB
+        per voxel at the peak of a pass).
+        """
         turn = np.eye(3) if turn is None else turn
         rotations = [
             axis_angle(_MODEL_UP, -2 * np.pi * k / self.headings) @ turn
             for k in range(self.headings)
         ]
-        described = self.extractor.describe_many([cloud @ r.T for r in rotations])
+        per_pass = max(1, self.pass_voxels // cloud.voxels)
+        described = []
+        for first in range(0, len(rotations), per_pass):
+            turned = [cloud.points @ r.T for r in rotations[first : first + per_pass]]
+            described += self.extractor.describe_many(turned)
         return [
             QueryView(d.keypoints @ r, d.features)
             for d, r in zip(described, rotations, strict=True)
@@ -584,7 +614,9 @@ def _best_per_model(model_ids: list[str], scored: list[Scored]) -> list[Candidat
 
 
 @contextmanager
-def _timed(timings: dict[str, float], stage: str) -> Iterator[None]:
+def _timed(timings: dict[str, float], stage: str, check: Callable[[], None]) -> Iterator[None]:
+    """Time one stage, after ``check`` (the deadline) says it may start."""
+    check()
     started = time.perf_counter()
     yield
     timings[stage] = (time.perf_counter() - started) * 1e3

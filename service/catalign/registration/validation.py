@@ -1,16 +1,34 @@
 """Checks on a query cloud before any work is spent on it, with messages a caller can act on.
 
-:func:`validate_cloud` turns whatever array-like a caller sent into a float64 (N,3) array, or
-refuses it: :class:`~catalign.errors.InvalidInputError` for a wrong shape, an empty cloud,
-non-finite values or too many points; :class:`~catalign.errors.DegenerateInputError` for clouds
-that are well formed but cannot fix a pose: too few occupied voxels, or points on a line or a
-plane. Shape is judged on the voxel-downsampled cloud (what the features see, and independent of
-how densely the sensor sampled each part) by the spreads along its principal axes.
+:func:`validate_cloud` turns whatever array-like a caller sent into the cloud the engine works
+on, or refuses it: :class:`~catalign.errors.InvalidInputError` for a wrong shape, an empty cloud,
+non-finite values, too many points, or a cloud that cannot be one chair in metres;
+:class:`~catalign.errors.DegenerateInputError` for clouds that are well formed but cannot fix a
+pose: too few occupied voxels, or points on a line or a plane.
+
+The checks also bound the work any later stage can be asked to do, whatever the input:
+
+* **far points are set aside**: points more than :data:`FAR_RADIUS_M` from the cloud's robust
+  centre (its coordinate-wise median) are not part of a segmented chair (a depth sensor's stray
+  returns, a point at float32's maximum) and would stretch the voxel grid over kilometres; they
+  are dropped and counted. If more than :data:`MAX_FAR_SHARE` of the cloud is that far out, the
+  cloud is not one chair in metres, and it is refused;
+* **the grid is bounded**: a chair's partial view occupies a few hundred to about 5,500 voxels of
+  2.5 cm (ray-cast views of 40 procedural chairs, ten real ScanNet chairs); a cloud that
+  occupies more than :data:`MAX_VOXELS` is a scene or a volume, and is refused before the
+  features are computed on it;
+* **the cloud is down-sampled**: the engine receives one point per cell of a quarter voxel (the
+  centroid of its points; a depth camera's points are about that far apart at 2 m), so a dense
+  scan of a chair costs about what a sparse one does.
+
+Shape is judged on the voxel-downsampled cloud (what the features see, and independent of how
+densely the sensor sampled each part) by the spreads along its principal axes.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from numbers import Real
 
 import numpy as np
@@ -28,22 +46,55 @@ PLANE_RATIO = 0.03
 # voxels (a wall with a chair in front of it) is not a plane, even if the relief is thin
 # relative to its extent.
 SLAB_WIDTH_PER_SIGMA = math.sqrt(12.0)
+# Occupied voxels a query needs (and a library model has): see validate_cloud.
+MIN_VOXELS = 50
+# Points farther than this from the cloud's median are set aside (views of chairs: 1.3 m at
+# most; real scans: 0.7 m; room for floor or a neighbour's part around the chair).
+FAR_RADIUS_M = 3.0
+# More than this share of the cloud that far out: not one chair in metres.
+MAX_FAR_SHARE = 0.2
+# Occupied voxels a query may have: about 3.6 times the largest chair view measured.
+MAX_VOXELS = 20_000
+# Cells per voxel edge of the grid the engine's points are down-sampled to.
+FINE_CELLS = 4
+# Coordinates farther from the origin than this lose the precision a pose needs.
+MAX_RANGE_M = 10_000.0
+
+
+@dataclass(frozen=True)
+class CheckedCloud:
+    """The cloud the engine works on, and what the checks did to the caller's points.
+
+    ``points`` are float64 (M, 3): the centroids of the points kept, one per fine cell;
+    ``received`` counts the caller's points, ``set_aside`` those dropped as far outliers,
+    ``voxels`` the occupied voxels of the kept points.
+    """
+
+    points: np.ndarray
+    received: int
+    set_aside: int
+    voxels: int
 
 
 def validate_cloud(
     points: object,
     *,
     voxel_size: float,
-    min_points: int = 50,
+    min_points: int = MIN_VOXELS,
     max_points: int | None = None,
-) -> np.ndarray:
-    """The query as a float64 (N,3) array, or a typed error that says what is wrong with it.
+    max_voxels: int = MAX_VOXELS,
+    far_radius: float = FAR_RADIUS_M,
+    fine_cells: int | None = FINE_CELLS,
+) -> CheckedCloud:
+    """The query as the engine should see it, or a typed error that says what is wrong with it.
 
     ``min_points`` counts occupied voxels of ``voxel_size``, not raw points: a thousand points in
     one voxel are one point to the features. The default of 50 is a patch of about 0.03 m² at
     2.5 cm voxels, far less than any partial view of a chair (over 100 voxels even at 5 cm), and
     too little surface for descriptors that look five voxels around. ``max_points`` (when given)
-    refuses larger clouds before any work is done on them.
+    refuses larger clouds before any work is done on them; ``max_voxels`` and ``far_radius``
+    bound the grid (module docstring); ``fine_cells`` is the down-sampling grid's cells per
+    voxel edge (None: the points kept, not down-sampled).
     """
     if not (isinstance(voxel_size, Real) and math.isfinite(voxel_size) and voxel_size > 0):
         raise InvalidInputError(f"voxel_size must be a positive number, got {voxel_size!r}")
@@ -69,14 +120,51 @@ def validate_cloud(
             f"{bad} of {len(cloud)} points have NaN or infinite coordinates; remove them first"
         )
 
-    centroids, _ = voxel_downsample(cloud, voxel_size)
+    kept = _without_far_points(cloud, far_radius)
+    fine = kept if fine_cells is None else voxel_downsample(kept, voxel_size / fine_cells)[0]
+    # Fine cells nest in voxels, so a voxel holds at most fine_cells³ of them: refuse early.
+    if fine_cells is not None and len(fine) > fine_cells**3 * max_voxels:
+        raise _too_many_voxels(f"over {max_voxels}", voxel_size, max_voxels)
+    centroids, _ = voxel_downsample(fine, voxel_size)
+    if len(centroids) > max_voxels:
+        raise _too_many_voxels(str(len(centroids)), voxel_size, max_voxels)
     if len(centroids) < min_points:
         raise DegenerateInputError(
             f"the point cloud occupies only {len(centroids)} voxels of {voxel_size:g} m, at "
             f"least {min_points} are needed (is the object too far away or mostly hidden?)"
         )
     _check_not_flat(centroids, voxel_size)
-    return cloud
+    return CheckedCloud(
+        points=fine, received=len(cloud), set_aside=len(cloud) - len(kept), voxels=len(centroids)
+    )
+
+
+def _without_far_points(cloud: np.ndarray, radius: float) -> np.ndarray:
+    """``cloud`` without the points farther than ``radius`` from its median, or
+    InvalidInputError when too many are, or when the cloud is too far from the origin."""
+    centre = np.median(cloud, axis=0)
+    if (reach := float(np.abs(centre).max())) > MAX_RANGE_M:
+        raise InvalidInputError(
+            f"the cloud's centre is {reach:.3g} m from the origin along an axis, farther than "
+            f"{MAX_RANGE_M:g} m; send it in the sensor's frame, in metres"
+        )
+    with np.errstate(over="ignore"):  # a coordinate near float64's maximum: infinitely far
+        near = np.linalg.norm(cloud - centre, axis=1) <= radius
+    far = len(cloud) - int(near.sum())
+    if far > MAX_FAR_SHARE * len(cloud):
+        raise InvalidInputError(
+            f"{far} of {len(cloud)} points lie more than {radius:g} m from the cloud's centre; "
+            "a segmented chair in metres has few such stray points (at most "
+            f"{MAX_FAR_SHARE:.0%}): crop the cloud to the object and send it in metres"
+        )
+    return cloud if far == 0 else cloud[near]
+
+
+def _too_many_voxels(count: str, voxel_size: float, max_voxels: int) -> InvalidInputError:
+    return InvalidInputError(
+        f"the point cloud occupies {count} voxels of {voxel_size:g} m, more than a view of one "
+        f"chair can (at most {max_voxels}); crop it to the object and send it in metres"
+    )
 
 
 def _check_not_flat(centroids: np.ndarray, voxel_size: float) -> None:

@@ -14,7 +14,8 @@ _DESCRIPTIONS = {
     413: "The body is over the server's limit (payload_too_large)",
     415: "Unsupported content type (unsupported_media_type)",
     422: "Bad input: invalid_input, degenerate_input or invalid_file",
-    503: "Every worker busy and the queue full (busy); see Retry-After",
+    503: "Every worker busy and the queue full (busy, see Retry-After), or the request ran "
+    "past its deadline (deadline_exceeded)",
 }
 
 

@@ -8,23 +8,32 @@ decoding (``..%2Fx`` is refused with 422, not routed somewhere else).
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path as FilePath
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request, status
+from fastapi import APIRouter, Depends, Path, Request, status
 
 from catalign.api.deps import ServiceDep, require_writable
 from catalign.api.inputs import MULTIPART, read_upload
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.geometry.io import SUPPORTED_SUFFIXES
-from catalign.library.sources import UNIT_FACTORS, validate_model_id
+from catalign.library.sources import MODEL_ID_PATTERN, UNIT_FACTORS, validate_model_id
 
 router = APIRouter(prefix="/models", tags=["models"])
 
 
-def checked_model_id(model_id: str) -> str:
-    """The path's model id (already URL-decoded), or 422 if it is not a valid id."""
+def checked_model_id(
+    model_id: Annotated[
+        str,
+        Path(
+            description="A library model id.",
+            json_schema_extra={"pattern": f"^{MODEL_ID_PATTERN.pattern}$", "maxLength": 128},
+        ),
+    ],
+) -> str:
+    """The path's model id (already URL-decoded), or 422 if it is not a valid id (checked here
+    rather than by FastAPI, so that the message says what a valid id is)."""
     return validate_model_id(model_id)
 
 
@@ -86,8 +95,9 @@ async def get_model(model_id: ModelId, service: ServiceDep) -> ModelPublic:
 )
 async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
     """Describe an uploaded shape and add it to the library (persisted atomically)."""
-    async with read_upload(request, SUPPORTED_SUFFIXES) as upload:
-        model_id = upload.fields.get("model_id") or Path(upload.filename).stem
+    service.ensure_capacity()
+    async with read_upload(request, SUPPORTED_SUFFIXES, service.spool) as upload:
+        model_id = upload.fields.get("model_id") or FilePath(upload.filename).stem
         units = upload.fields.get("units") or "m"
         entry = await service.add_model(upload, model_id, units)
     return ModelPublic.from_entry(entry)

@@ -13,6 +13,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request
 
 from catalign.api.deps import ServiceDep, SettingsDep
+from catalign.api.disconnect import unless_disconnected
 from catalign.api.errors import request_id_of
 from catalign.api.inputs import (
     BINARY,
@@ -100,14 +101,16 @@ async def register(
 ) -> RegisterResponse:
     """The best library model for the cloud, its model -> observation pose and inlier stats.
 
-    Clouds over the server's ``max_points`` (default 500,000) are refused with 422.
+    Clouds over the server's ``max_points`` (default 500,000), or that cannot be one chair in
+    metres, are refused with 422; a full queue answers 503 before the body is read, and a
+    registration past the server's deadline (default 10 s) 503 ``deadline_exceeded``.
     """
-    service.ensure_capacity()
-    if media_type(request) == MULTIPART:
-        async with read_upload(request, CLOUD_SUFFIXES) as upload:
-            query = PointQuery(options=options, path=upload.path, filename=upload.filename)
-            result = await service.register(query)
-    else:
-        query = await decode_body(request, options, settings.max_points)
-        result = await service.register(query)
+    with service.reserve() as slot:  # a full queue answers 503 before the body is read
+        if media_type(request) == MULTIPART:
+            async with read_upload(request, CLOUD_SUFFIXES, service.spool) as upload:
+                query = PointQuery(options=options, path=upload.path, filename=upload.filename)
+                result = await unless_disconnected(request, service.register(query, slot=slot))
+        else:
+            query = await decode_body(request, options, settings.max_points)
+            result = await unless_disconnected(request, service.register(query, slot=slot))
     return RegisterResponse.from_result(result, request_id_of(request))
