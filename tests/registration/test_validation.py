@@ -9,6 +9,7 @@ from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation
 from catalign.registration.validation import (
+    DENSE_POINTS,
     FAR_RADIUS_M,
     FINE_CELLS,
     MAX_VOXELS,
@@ -26,27 +27,26 @@ def box_surface(rng: np.random.Generator, n: int, extents=(0.4, 0.6, 0.3)) -> np
     return points * np.asarray(extents)
 
 
-def test_accepts_lists_and_float32_and_returns_fine_centroids(rng):
+def test_accepts_lists_and_float32_and_returns_float64(rng):
     points = box_surface(rng, 3000)
-    expected, _ = voxel_downsample(points, VOXEL / FINE_CELLS)
-    for given in (points.tolist(), points):
+    for given in (points.tolist(), points.astype(np.float32), points):
         checked = validate_cloud(given, voxel_size=VOXEL)
-        assert checked.points.dtype == np.float64 and checked.received == 3000
-        assert checked.set_aside == 0
-        np.testing.assert_allclose(checked.points, expected)
-        assert checked.voxels == len(voxel_downsample(points, VOXEL)[0])
-    single = validate_cloud(points.astype(np.float32), voxel_size=VOXEL)
-    assert single.points.dtype == np.float64
-    assert abs(len(single.points) - len(expected)) < 0.02 * len(expected)  # rounding at edges
+        assert checked.points.dtype == np.float64 and checked.points.shape == (3000, 3)
+        assert checked.received == 3000 and checked.set_aside == 0
+        np.testing.assert_allclose(checked.points, points, atol=1e-6)
+    checked = validate_cloud(points, voxel_size=VOXEL)
+    assert checked.points is not points  # a copy the caller may keep
+    assert checked.voxels == len(voxel_downsample(points, VOXEL)[0])
 
 
 def test_a_dense_scan_costs_what_a_sparse_one_does(rng):
-    """The engine gets at most FINE_CELLS³ points per voxel, however dense the scan."""
-    sparse = box_surface(rng, 3_000)
-    dense = box_surface(rng, 300_000)
+    """A cloud over DENSE_POINTS reaches the engine as one centroid per fine cell."""
+    dense = box_surface(rng, 3 * DENSE_POINTS)
     checked = validate_cloud(dense, voxel_size=VOXEL)
+    np.testing.assert_allclose(checked.points, voxel_downsample(dense, VOXEL / FINE_CELLS)[0])
     assert len(checked.points) <= FINE_CELLS**3 * checked.voxels
-    assert len(checked.points) < 5 * len(validate_cloud(sparse, voxel_size=VOXEL).points)
+    assert len(checked.points) < DENSE_POINTS / 3
+    assert len(validate_cloud(dense[:DENSE_POINTS], voxel_size=VOXEL).points) == DENSE_POINTS
 
 
 @pytest.mark.parametrize(

@@ -122,7 +122,7 @@ class Engine:
     check, that get the coverage check), ``refine`` (poses that get ICP), ``exact_fitness`` (the
     share of the query within one ICP distance of the model above which the model is taken to
     be the observed instance itself, and its fitted pose is not recentred), ``fine_cells``
-    (cells per voxel edge of the grid the query is down-sampled to first; None: not at all),
+    (cells per voxel edge of the grid a dense query is down-sampled to first; None: never),
     ``pass_voxels`` (query voxels, over all headings, that one forward pass may describe).
     """
 
