@@ -11,6 +11,7 @@ process, so it is given the workers' total.
 from __future__ import annotations
 
 import os
+import threading
 
 
 def cores() -> int:
@@ -26,8 +27,11 @@ def default_threads_per_worker(workers: int) -> int:
     return max(1, cores() // max(1, workers))
 
 
-def limit_threads(threads: int, total: int) -> None:
-    """Use ``threads`` threads in this worker (torch, OpenMP, BLAS) and ``total`` in Open3D."""
+def limit_threads(threads: int, total: int, niceness: int = 0) -> None:
+    """Use ``threads`` threads in this worker (torch, OpenMP, BLAS) and ``total`` in Open3D, and
+    run this thread ``niceness`` steps below the process's priority."""
+    if niceness:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
     import open3d
     import torch
     from threadpoolctl import threadpool_limits

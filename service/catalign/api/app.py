@@ -74,7 +74,10 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     app.state.grpc_port = None
     install_error_handlers(app)
     app.add_middleware(
-        RequestContextMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics
+        RequestContextMiddleware,
+        max_body_bytes=settings.max_body_bytes,
+        metrics=metrics,
+        refuse_early=service.refusal,
     )
     guarded = [Depends(require_api_key)]
     app.include_router(health.router)

@@ -4,8 +4,10 @@ A pure ASGI middleware (not ``BaseHTTPMiddleware``) so that bodies stream throug
 The request id comes from a well-formed ``X-Request-ID`` header or is generated; it is stored
 in ``request.state.request_id``, echoed in the response header and logged. Bodies over the limit
 are refused from ``Content-Length`` before they are read, and while they are read otherwise
-(chunked uploads). An exception no handler took is a bug: logged with its traceback and the
-request id, answered 500 ``internal`` without details.
+(chunked uploads). ``refuse_early`` may refuse a request from its method and path alone (a full
+worker queue): answered here, before routing, a refusal costs a flood of clients little. An
+exception no handler took is a bug: logged with its traceback and the request id, answered 500
+``internal`` without details.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import logging
 import re
 import time
 import uuid
+from collections.abc import Callable
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -39,10 +42,18 @@ def valid_request_id(value: str | None) -> str:
 class RequestContextMiddleware:
     """Request id, body limit, access log and request metrics for every HTTP request."""
 
-    def __init__(self, app: ASGIApp, *, max_body_bytes: int, metrics: Metrics) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        max_body_bytes: int,
+        metrics: Metrics,
+        refuse_early: Callable[[str, str], Exception | None] = lambda method, path: None,
+    ) -> None:
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.metrics = metrics
+        self.refuse_early = refuse_early
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -79,10 +90,11 @@ class RequestContextMiddleware:
 
         try:
             declared = _content_length(headers)
-            if declared is not None and declared > self.max_body_bytes:
-                await error_response(self._too_large(declared), request_id)(
-                    scope, receive, send_with_id
-                )
+            refusal = self.refuse_early(scope["method"], scope["path"])
+            if refusal is None and declared is not None and declared > self.max_body_bytes:
+                refusal = self._too_large(declared)
+            if refusal is not None:
+                await error_response(refusal, request_id)(scope, receive, send_with_id)
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except asyncio.CancelledError:

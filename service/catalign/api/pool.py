@@ -143,8 +143,12 @@ class WorkPool:
 
     def ensure_capacity(self) -> None:
         """Raise BusyError now if a job would be refused (checked again when it is admitted)."""
-        if self.full:
-            raise self._refuse()
+        if (refused := self.refusal()) is not None:
+            raise refused
+
+    def refusal(self) -> BusyError | None:
+        """The BusyError a job would get now, or None while there is room."""
+        return self._refuse() if self.full else None
 
     def _admit(self) -> None:
         with self._lock:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import catalign
-from catalign.api.errors import EmptyLibraryError, ModelExistsError
+from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
@@ -73,7 +73,7 @@ class RegistrationService:
             workers,
             self.settings.queue,
             self.metrics,
-            initializer=partial(limit_threads, threads, total=threads * workers),
+            initializer=partial(limit_threads, threads, total=threads * workers, niceness=5),
         )
         await asyncio.to_thread(self.spool.open)
         await asyncio.to_thread(self._load)
@@ -115,6 +115,12 @@ class RegistrationService:
     def ensure_capacity(self) -> None:
         """Refuse early (before reading a body) when the queue is already full."""
         self.pool.ensure_capacity()
+
+    def refusal(self, method: str, path: str) -> BusyError | None:
+        """Busy for a registration that would find the queue full (checked before routing)."""
+        if method == "POST" and path == "/register" and self._pool is not None:
+            return self._pool.refusal()
+        return None
 
     def reserve(self) -> Slot:
         """A place in the worker pool for one request, taken before its body is read."""

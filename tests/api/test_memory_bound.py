@@ -1,0 +1,146 @@
+"""The server answers the heaviest requests within its limits under a 2 GB address-space cap.
+
+``catalign serve`` runs as a subprocess whose address space (``RLIMIT_AS``: every mapping, not
+only what is resident) is capped at :data:`ADDRESS_SPACE`. It is then sent, one after the other,
+the requests within the limits that cost the most memory: the largest JSON body of points the
+point limit allows, half a million random points in a 2 m cube, a dense chair standing on a
+floor that fills nearly the whole voxel budget, and files whose headers claim billions of
+points. Each must be answered (200 or a 4xx), and the server must still be alive afterwards: a
+reader or a stage that allocated without bound would fail its allocation here (and, without the
+cap, would have the process killed by the kernel).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import resource
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from catalign.data.shapes import procedural_shape
+from catalign.geometry.sampling import sample_surface, voxel_downsample
+from catalign.registration.validation import MAX_VOXELS
+
+pytestmark = pytest.mark.slow
+
+ADDRESS_SPACE = 2 << 30
+MAX_POINTS = 500_000  # the server's default limit
+START_TIMEOUT_S = 180.0
+BINARY = {"content-type": "application/octet-stream"}
+
+
+@pytest.fixture(scope="module")
+def url(model_dir: Path, library_dir: Path) -> Iterator[str]:
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
+    env["CATALIGN_DEADLINE_S"] = "120"  # memory is under test here, not time
+    command = [
+        sys.executable,
+        "-c",
+        "from catalign.cli import app; app()",
+        "serve",
+        *("--model-dir", str(model_dir), "--library", str(library_dir)),
+        *("--port", str(port), "--grpc-port", "0"),
+    ]
+    process = subprocess.Popen(
+        command,
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE)),
+    )
+    address = f"http://127.0.0.1:{port}"
+    try:
+        _wait_ready(address, process)
+        yield address
+        assert process.poll() is None, "the server died"
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+def dense_chair_on_a_floor() -> np.ndarray:
+    """A densely scanned chair on a floor disc that together fill about 90 % of the voxels a
+    query may have, as 500,000 points: the most the engine can be asked to describe."""
+    shape = procedural_shape(4)
+    rng = np.random.default_rng(0)
+    chair = sample_surface(shape.mesh.vertices, shape.mesh.faces, 200_000, rng)
+    chair = chair[:, [0, 2, 1]]  # +Y up -> +Z up
+    floor_cells = 0.9 * MAX_VOXELS - len(voxel_downsample(chair, 0.025)[0])
+    radius = np.sqrt(floor_cells * 0.025**2 / np.pi)
+    r, angle = radius * np.sqrt(rng.random(300_000)), rng.uniform(0, 2 * np.pi, 300_000)
+    floor = np.c_[r * np.cos(angle), r * np.sin(angle), np.full(300_000, chair[:, 2].min())]
+    cloud = np.r_[chair, floor]
+    assert 0.8 * MAX_VOXELS < len(voxel_downsample(cloud, 0.025)[0]) <= MAX_VOXELS
+    return cloud
+
+
+def test_the_heaviest_requests_are_answered_under_the_cap(url: str) -> None:
+    rng = np.random.default_rng(1)
+    with httpx.Client(base_url=url, timeout=300) as client:
+        rows = rng.uniform(-0.5, 0.5, size=(MAX_POINTS, 3)).round(6).tolist()
+        largest_json = client.post(
+            "/register",
+            content=json.dumps({"points": rows}),
+            headers={"content-type": "application/json"},
+        )
+        assert largest_json.status_code == 422, largest_json.text  # a volume, not a chair
+
+        cube = rng.uniform(0.0, 2.0, size=(MAX_POINTS, 3)).astype("<f4")
+        volume = client.post("/register", content=cube.tobytes(), headers=BINARY)
+        assert volume.status_code == 422, volume.text
+
+        cloud = dense_chair_on_a_floor().astype("<f4")
+        largest = client.post(
+            "/register", content=cloud.tobytes(), params={"up": "0,0,1"}, headers=BINARY
+        )
+        assert largest.status_code == 200, largest.text
+
+        for name, body in _lying_files().items():
+            answer = client.post("/register", files={"file": (name, body)})
+            assert answer.status_code == 422, (name, answer.text)
+        assert client.get("/health/live").status_code == 200
+
+
+def _lying_files() -> dict[str, bytes]:
+    pcd = b"VERSION .7\nFIELDS x y z\nPOINTS 1000000000\nDATA ascii\n1 2 3\n"
+    ply = b"ply\nformat binary_little_endian 1.0\nelement vertex 3000000000\n"
+    ply += b"property float x\nproperty float y\nproperty float z\nend_header\n" + b"\0" * 12
+    npy = io.BytesIO()
+    header = {"descr": "<f4", "fortran_order": False, "shape": (9_999_999_999, 3)}
+    np.lib.format.write_array_header_1_0(npy, header)
+    npy.write(b"\0" * 48)
+    return {"evil.pcd": pcd, "evil.ply": ply, "evil.npy": npy.getvalue()}
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _wait_ready(url: str, process: subprocess.Popen) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError("catalign serve exited during start-up under the cap")
+        try:
+            if httpx.get(f"{url}/health/ready", timeout=5).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"catalign serve at {url} was not ready after {START_TIMEOUT_S:.0f} s")
