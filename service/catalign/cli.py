@@ -230,6 +230,7 @@ def serve(
 
     from catalign.api.app import create_app
     from catalign.api.settings import ServiceSettings
+    from catalign.threads import limit_malloc_arenas
 
     flags = {
         "library": library,
@@ -257,6 +258,7 @@ def serve(
     with exit_on_error():
         _check_serve_paths(settings.model_dir, settings.library)
     logging.getLogger().setLevel(settings.log_level.upper())
+    limit_malloc_arenas(2)
     uvicorn.run(
         create_app(settings),
         host=settings.host,

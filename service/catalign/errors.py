@@ -55,4 +55,11 @@ class ConfigError(CatalignError):
 
 
 class DeadlineExceededError(CatalignError):
-    """The work stopped: its deadline passed or its caller stopped waiting for it."""
+    """The work stopped: its deadline passed or its caller stopped waiting for it.
+
+    ``retry_after`` (seconds), when known, is how long the service expects to be this busy.
+    """
+
+    def __init__(self, message: str, retry_after: int | None = None) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after

@@ -5,13 +5,17 @@ Left alone, every one of them starts a pool as large as the machine, so N worker
 N times as many threads as cores and slow each other down. :func:`limit_threads` runs once in
 each worker thread: OpenMP's limit is per calling thread, torch's and the BLAS libraries' are
 process-wide (the same value in every worker), and Open3D's TBB limit counts every thread of the
-process, so it is given the workers' total.
+process, so it is given the workers' total. :func:`limit_malloc_arenas` keeps glibc from giving
+every thread that allocates (workers, the body decoders) a heap of its own.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import threading
+
+_M_ARENA_MAX = -8  # glibc's mallopt parameter number
 
 
 def cores() -> int:
@@ -25,6 +29,20 @@ def cores() -> int:
 def default_threads_per_worker(workers: int) -> int:
     """An even share of the cores for each of ``workers`` workers, at least one thread."""
     return max(1, cores() // max(1, workers))
+
+
+def limit_malloc_arenas(arenas: int) -> bool:
+    """Let glibc's malloc keep at most ``arenas`` heaps (``M_ARENA_MAX``); False off glibc.
+
+    Each arena reserves 64 MB of address space and keeps freed memory for its thread. Measured
+    on the server with its heaviest request: 1.91 GB of address space at the peak by default,
+    1.6 GB with two arenas, the same time and resident memory.
+    """
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(_M_ARENA_MAX, arenas))
+    except (OSError, AttributeError):
+        return False
 
 
 def limit_threads(threads: int, total: int, niceness: int = 0) -> None:

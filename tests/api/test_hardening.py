@@ -117,6 +117,7 @@ def test_a_request_past_its_deadline_answers_503_and_frees_its_worker(
         )
         assert answer.status_code == 503, answer.text
         assert answer.json()["error"]["code"] == "deadline_exceeded"
+        assert int(answer.headers["retry-after"]) >= 1
         assert metric(http, "catalign_deadline_exceeded_total", '{reason="deadline"}') == 1
         _wait_until(lambda: metric(http, "catalign_jobs_in_flight") == 0)
 

@@ -77,7 +77,8 @@ def dense_chair_on_a_floor() -> np.ndarray:
     query may have, as 500,000 points: the most the engine can be asked to describe."""
     shape = procedural_shape(4)
     rng = np.random.default_rng(0)
-    chair = sample_surface(shape.mesh.vertices, shape.mesh.faces, 200_000, rng)
+    # Both sides of every part, all round: more voxels than any view; scaled to leave room.
+    chair = sample_surface(0.7 * shape.mesh.vertices, shape.mesh.faces, 200_000, rng)
     chair = chair[:, [0, 2, 1]]  # +Y up -> +Z up
     floor_cells = 0.9 * MAX_VOXELS - len(voxel_downsample(chair, 0.025)[0])
     radius = np.sqrt(floor_cells * 0.025**2 / np.pi)

@@ -100,3 +100,24 @@ def test_changes_by_another_process_are_served_without_a_restart(
         listed = http.get("/models").json()
         assert "chair-9" in {m["model_id"] for m in listed["models"]} and listed["count"] == 4
         assert http.get("/models/chair-9").status_code == 200
+
+
+def test_a_models_points_come_as_float32_thinned_to_the_limit(
+    serve: Callable, library_dir: Path
+) -> None:
+    with (
+        serve(library=library_dir, warmup=False) as server,
+        httpx.Client(base_url=server.url, timeout=60) as http,
+    ):
+        model = http.get("/models/proc-0001").json()
+        answer = http.get("/models/proc-0001/points", params={"max_points": 1000})
+        assert answer.status_code == 200
+        assert answer.headers["content-type"] == "application/octet-stream"
+        points = np.frombuffer(answer.content, dtype="<f4").reshape(-1, 3)
+        assert len(points) == int(answer.headers["x-point-count"]) and 900 < len(points) <= 1000
+        assert np.all(points >= np.asarray(model["bbox_min"]) - 1e-5)
+        assert np.all(points <= np.asarray(model["bbox_max"]) + 1e-5)
+        default = http.get("/models/proc-0001/points")
+        assert int(default.headers["x-point-count"]) == 5000
+        assert http.get("/models/no-such/points").status_code == 404
+        assert http.get("/models/proc-0001/points", params={"max_points": 0}).status_code == 422

@@ -42,6 +42,26 @@ def test_admission_is_bounded_and_slots_come_back() -> None:
     asyncio.run(scenario())
 
 
+def test_admission_refuses_what_could_not_finish_in_time() -> None:
+    """Once a job has measured 0.2 s, one worker and a 0.5 s budget admit a running job and one
+    waiting behind it; a third would finish after 0.6 s and is refused."""
+    release = threading.Event()
+
+    async def scenario() -> None:
+        pool = WorkPool(workers=1, queue=10, metrics=Metrics(), max_wait_s=0.5)
+        await pool.run(time.sleep, 0.2)
+        admitted = [asyncio.ensure_future(pool.run(release.wait)) for _ in range(2)]
+        await asyncio.sleep(0.05)
+        assert pool.full
+        with pytest.raises(BusyError):
+            await pool.run(lambda: 0)
+        release.set()
+        assert await asyncio.gather(*admitted) == [True, True]
+        pool.shutdown()
+
+    asyncio.run(scenario())
+
+
 def checking_until_stopped(deadline: Deadline, started: threading.Event) -> str:
     """A job that works in small steps and checks its deadline between them, as the engine does."""
     started.set()

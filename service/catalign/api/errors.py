@@ -12,7 +12,7 @@ The service adds a few errors of its own to catalign's hierarchy (:mod:`catalign
         ├── ReadOnlyError                            403 read_only
         ├── BusyError                                503 busy (with Retry-After)
         └── ClientGoneError                          499 client_closed_request
-    DeadlineExceededError (catalign.errors)          503 deadline_exceeded
+    DeadlineExceededError (catalign.errors)          503 deadline_exceeded (with Retry-After)
 
 :data:`ERROR_TABLE` maps every class to its status, code and gRPC status name (the most
 specific class wins); every answer has the body ``{"error": {"code", "message"}, "request_id"}``.
@@ -138,9 +138,10 @@ def error_body(code: str, message: str, request_id: str) -> dict[str, object]:
 
 
 def error_response(error: BaseException, request_id: str) -> JSONResponse:
-    """The JSON answer for ``error`` (with ``Retry-After`` for :class:`BusyError`)."""
+    """The JSON answer for ``error`` (with ``Retry-After`` when it says when to retry)."""
     kind = kind_of(error)
-    headers = {"Retry-After": str(error.retry_after)} if isinstance(error, BusyError) else None
+    retry_after = getattr(error, "retry_after", None)
+    headers = {"Retry-After": str(retry_after)} if retry_after is not None else None
     return JSONResponse(
         error_body(kind.code, message_of(error), request_id), kind.status, headers=headers
     )

@@ -6,7 +6,10 @@ runs jobs on ``workers`` threads and admits at most ``workers + queue`` requests
 is refused immediately with :class:`~catalign.api.errors.BusyError` (503 with ``Retry-After``,
 the time the queue ahead takes to drain at the measured mean job duration). A request takes its
 :class:`Slot` with :meth:`WorkPool.reserve` *before* its body is read, so a crowd of clients
-cannot make the server read and hold more bodies than it will ever run.
+cannot make the server read and hold more bodies than it will ever run. With ``max_wait_s`` a
+request is also refused when the jobs already admitted, at the measured mean duration, would not
+let it finish within that time: under load the queue shortens instead of filling with requests
+that would only run past their deadline.
 
 A job may carry a :class:`~catalign.deadline.Deadline`. One that expired while it waited is
 dropped without running; when it expires while the job runs, or the caller goes away, the
@@ -71,9 +74,11 @@ class WorkPool:
         metrics: Metrics,
         *,
         initializer: Callable[[], None] | None = None,
+        max_wait_s: float | None = None,
     ) -> None:
         self.workers = workers
         self.capacity = workers + queue
+        self.max_wait_s = max_wait_s
         self._metrics = metrics
         self._executor = ThreadPoolExecutor(
             workers, thread_name_prefix="catalign-worker", initializer=initializer
@@ -81,15 +86,22 @@ class WorkPool:
         self._lock = threading.Lock()
         self._admitted = 0
         self._running = 0
-        self._mean_s = 1.0
+        self._mean_s: float | None = None  # mean job duration, once one was measured
 
     @property
     def full(self) -> bool:
-        return self._admitted >= self.capacity
+        if self._admitted >= self.capacity:
+            return True
+        # When would one more job finish, the jobs admitted ahead run at the mean duration?
+        rounds = self._admitted // self.workers + 1
+        if self.max_wait_s is None or self._mean_s is None:
+            return False
+        return rounds * self._mean_s > self.max_wait_s
 
     def retry_after(self) -> int:
         """Seconds until a slot is likely free: the queue drained at the mean job duration."""
-        return max(1, math.ceil(self._mean_s * self.capacity / self.workers))
+        mean = 1.0 if self._mean_s is None else self._mean_s
+        return max(1, math.ceil(mean * self.capacity / self.workers))
 
     def reserve(self) -> Slot:
         """A slot for one request (a context manager), or BusyError at once when none is free."""
@@ -128,7 +140,9 @@ class WorkPool:
             message = f"the request ran past its deadline of {deadline.seconds:g} s"
             deadline.cancel(message)
             future.cancel()  # not started yet: dropped now
-            raise DeadlineExceededError(message) from None
+            raise DeadlineExceededError(message, retry_after=self.retry_after()) from None
+        except DeadlineExceededError as error:  # the job stopped itself, or never started
+            raise DeadlineExceededError(str(error), retry_after=self.retry_after()) from None
         except asyncio.CancelledError:
             deadline.cancel("the caller went away")
             future.cancel()
@@ -152,7 +166,7 @@ class WorkPool:
 
     def _admit(self) -> None:
         with self._lock:
-            if self._admitted >= self.capacity:
+            if self.full:
                 raise self._refuse()
             self._admitted += 1
             self._publish()
@@ -178,7 +192,8 @@ class WorkPool:
             elapsed = time.perf_counter() - started
             with self._lock:
                 self._running -= 1
-                self._mean_s += _SMOOTHING * (elapsed - self._mean_s)
+                mean = elapsed if self._mean_s is None else self._mean_s
+                self._mean_s = mean + _SMOOTHING * (elapsed - mean)
                 self._publish()
 
     def _release(self) -> None:

@@ -74,6 +74,7 @@ class RegistrationService:
             self.settings.queue,
             self.metrics,
             initializer=partial(limit_threads, threads, total=threads * workers, niceness=5),
+            max_wait_s=self.settings.deadline_s,
         )
         await asyncio.to_thread(self.spool.open)
         await asyncio.to_thread(self._load)

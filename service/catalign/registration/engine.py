@@ -151,7 +151,7 @@ class Engine:
         verify_top: int = 32,
         exact_fitness: float = 0.9,
         fine_cells: int | None = FINE_CELLS,
-        pass_voxels: int = 48_000,
+        pass_voxels: int = 32_000,
     ) -> None:
         self.extractor = extractor
         self.library = library

@@ -2,8 +2,10 @@
 
 Adding uploads a shape file (mesh or point cloud) with an optional ``model_id`` (default: the
 file stem) and ``units``; the server describes it, writes the library atomically and serves the
-new library from then on. Ids are checked against the library's id pattern, also after URL
-decoding (``..%2Fx`` is refused with 422, not routed somewhere else).
+new library from then on. ``/models/{id}/points`` serves a model's surface points (metres, as
+stored), evenly thinned to at most ``max_points``, as raw float32 for viewers and plots. Ids
+are checked against the library's id pattern, also after URL decoding (``..%2Fx`` is refused
+with 422, not routed somewhere else).
 """
 
 from __future__ import annotations
@@ -11,16 +13,20 @@ from __future__ import annotations
 from pathlib import Path as FilePath
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Request, status
+import numpy as np
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from catalign.api.deps import ServiceDep, require_writable
-from catalign.api.inputs import MULTIPART, read_upload
+from catalign.api.inputs import BINARY, MULTIPART, read_upload
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.geometry.io import SUPPORTED_SUFFIXES
 from catalign.library.sources import MODEL_ID_PATTERN, UNIT_FACTORS, validate_model_id
 
 router = APIRouter(prefix="/models", tags=["models"])
+
+DEFAULT_MODEL_POINTS = 5_000
+MAX_MODEL_POINTS = 20_000  # a library entry keeps 10,000
 
 
 def checked_model_id(
@@ -75,6 +81,35 @@ async def list_models(service: ServiceDep) -> ModelList:
     """Every model of the library being served, sorted by id."""
     models = [ModelPublic.from_entry(e) for e in await service.models()]
     return ModelList(count=len(models), models=models)
+
+
+@router.get(
+    "/{model_id:path}/points",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {BINARY: {"schema": {"type": "string", "format": "binary"}}},
+            "description": "N * 12 bytes: little-endian float32 x, y, z per point (metres, "
+            "model frame); N is in the X-Point-Count header.",
+        },
+        **error_responses(401, 404, 422),
+    },
+)
+async def get_model_points(
+    model_id: ModelId,
+    service: ServiceDep,
+    max_points: Annotated[
+        int,
+        Query(ge=1, le=MAX_MODEL_POINTS, description="At most this many points, evenly thinned."),
+    ] = DEFAULT_MODEL_POINTS,
+) -> Response:
+    """A library model's surface points, evenly thinned to at most ``max_points``."""
+    points = (await service.model(model_id)).points
+    step = -(-len(points) // max_points)  # ceiling division: at most max_points rows
+    thinned = np.ascontiguousarray(points[::step], dtype="<f4")
+    return Response(
+        thinned.tobytes(), media_type=BINARY, headers={"X-Point-Count": str(len(thinned))}
+    )
 
 
 @router.get(
