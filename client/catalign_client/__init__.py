@@ -6,7 +6,7 @@ library, its SE(3) pose and inlier statistics, without installing torch or open3
     import numpy as np
     from catalign_client import AlignResult, AsyncClient, Client, InvalidInputError
 
-    points = np.load("chair_view.npy")              # (N, 3), or an Open3D / trimesh cloud
+    points = np.load("chair_view.npy")              # (N, 3); or Open3D, trimesh, PointCloud2
     with Client("http://localhost:8000", api_key="secret") as client:
         if not client.health():
             raise SystemExit("catalign is still starting")
@@ -18,6 +18,8 @@ library, its SE(3) pose and inlier statistics, without installing torch or open3
         print(result.model_id, result.fitness, result.inlier_rmse)
         R, t = result.rotation, result.translation  # x_obs = scale * R @ x_model + t
         pose = result.pose                          # numpy (4, 4) float64
+        model = client.model_points(result.model_id)  # (M, 3) surface points, model frame
+        result.plot(points, model, "alignment.png")   # needs catalign-client[plot]
 
     # asyncio: the same methods, awaited
     async def locate(points: np.ndarray) -> AlignResult:
@@ -25,7 +27,7 @@ library, its SE(3) pose and inlier statistics, without installing torch or open3
             return await client.align(points)
 
 From a shell: ``catalign-client align cloud.ply --url http://localhost:8000`` prints the result
-as JSON; ``catalign-client models --url ...`` lists the library.
+as JSON (``--png out.png`` also draws it); ``catalign-client models --url ...`` lists the library.
 """
 
 from ._client import AsyncClient, Client
@@ -46,6 +48,7 @@ from ._exceptions import (
     TransportError,
 )
 from ._models import AlignResult, Candidate, ModelInfo
+from ._pointcloud2 import PointCloud2Like
 from ._points import HasPoints, HasVertices, PointsLike
 from ._version import __version__
 
@@ -68,6 +71,7 @@ __all__ = [
     "NotFoundError",
     "PayloadTooLargeError",
     "PermissionDeniedError",
+    "PointCloud2Like",
     "PointsLike",
     "ServerError",
     "ServiceUnavailableError",

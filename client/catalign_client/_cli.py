@@ -3,8 +3,12 @@
 Operators and scripts on a robot need to poke the service without writing Python; the CLI is a
 thin layer over :class:`Client` that reads ``.npy``, ``.xyz`` and ``.ply`` locally (sent as
 compact float32), uploads any other file for the server to parse, prints answers as JSON on
-stdout, and turns every failure into one line on stderr and exit status 1. ``--url`` and
-``--api-key`` default to ``$CATALIGN_URL`` and ``$CATALIGN_API_KEY``.
+stdout, and turns every failure into one line on stderr and exit status 1. ``align --png out.png``
+also fetches the chosen model's points and draws them over the cloud (needs matplotlib, the
+``plot`` extra); options this installation or this file cannot serve (``--png`` without
+matplotlib, or with a file only the server can read) are refused before anything is sent, with
+exit status 2. ``--url`` and ``--api-key`` default to ``$CATALIGN_URL`` and
+``$CATALIGN_API_KEY``.
 """
 
 from __future__ import annotations
@@ -17,30 +21,49 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ._client import Client
 from ._exceptions import CatalignError
 from ._files import LOCAL_SUFFIXES, UnsupportedFileError, read_points
+from ._plot import INSTALL_HINT, require_matplotlib
 from ._version import __version__
 
 ClientFactory = Callable[[str, str | None], Client]
 """Builds the client from ``(url, api_key)``; tests pass one backed by a mock transport."""
 
 
+class UsageError(Exception):
+    """Options this installation or this input cannot serve; nothing was sent (exit status 2)."""
+
+
 def main(argv: Sequence[str] | None = None, *, client_factory: ClientFactory | None = None) -> int:
-    """Run the CLI; returns the exit status (0 on success, 1 on any error)."""
+    """Run the CLI; returns the exit status (0 on success, 1 on an error, 2 on a usage error)."""
     args = _parser().parse_args(argv)
     if not args.url:
         print("catalign-client: error: no server URL (--url or $CATALIGN_URL)", file=sys.stderr)
         return 1
     factory = client_factory or _default_client
     try:
+        if getattr(args, "png", None):
+            _check_plotting()
         with factory(args.url, args.api_key) as client:
             print(json.dumps(args.run(client, args), indent=2))
+    except UsageError as error:
+        print(f"catalign-client: error: {error}", file=sys.stderr)
+        return 2
     except (CatalignError, OSError, ValueError) as error:
         message = " ".join(str(error).split()) or type(error).__name__
         print(f"catalign-client: error: {message}", file=sys.stderr)
         return 1
     return 0
+
+
+def _check_plotting() -> None:
+    try:
+        require_matplotlib()
+    except ImportError as exc:
+        raise UsageError(f"--png needs matplotlib, which is not installed: {INSTALL_HINT}") from exc
 
 
 def _default_client(url: str, api_key: str | None) -> Client:
@@ -55,14 +78,29 @@ def _align(client: Client, args: argparse.Namespace) -> dict[str, Any]:
         "estimate_scale": args.estimate_scale,
         "seed": args.seed,
     }
-    if path.suffix.lower() in LOCAL_SUFFIXES:
-        try:
-            points = read_points(path)
-        except UnsupportedFileError:
-            pass  # a variant this reader does not parse: let the server try
-        else:
-            return client.align(points, encoding=args.encoding, **options).to_dict()
-    return client.align_file(path, **options).to_dict()
+    points = _local_points(path)
+    if points is None:
+        if args.png:
+            raise UsageError(
+                f"--png draws the points read here, and {path.name} is not a file this client "
+                f"reads ({', '.join(LOCAL_SUFFIXES)}); convert it, or drop --png"
+            )
+        return client.align_file(path, **options).to_dict()
+    result = client.align(points, encoding=args.encoding, **options)
+    if args.png:
+        model = client.model_points(result.model_id)
+        result.plot(points, model, args.png, title=path.name)
+    return result.to_dict()
+
+
+def _local_points(path: Path) -> np.ndarray | None:
+    """The file's points read here, or ``None`` when the server must parse it."""
+    if path.suffix.lower() not in LOCAL_SUFFIXES:
+        return None
+    try:
+        return read_points(path)
+    except UnsupportedFileError:
+        return None  # a variant this reader does not parse: let the server try
 
 
 def _models(client: Client, args: argparse.Namespace) -> dict[str, Any]:
@@ -94,6 +132,11 @@ def _parser() -> argparse.ArgumentParser:
     align.add_argument("--seed", type=int, help="seed for a reproducible answer")
     align.add_argument("--estimate-scale", action="store_true", help="also fit a uniform scale")
     align.add_argument("--encoding", choices=("binary", "json"), default="binary")
+    align.add_argument(
+        "--png",
+        metavar="PATH",
+        help="also draw the cloud and the posed model to this PNG (needs catalign-client[plot])",
+    )
     align.set_defaults(run=_align)
 
     models = commands.add_parser("models", parents=[common], help="list the library as JSON")

@@ -20,11 +20,21 @@ from typing import Any, Self
 from urllib.parse import quote
 
 import httpx
+import numpy as np
 
 from ._exceptions import DecodingError, TransportError, error_from_response, retry_after_seconds
 from ._models import AlignResult, ModelInfo, parse_models, parse_removed_count
 from ._points import PointsLike, as_points, encode_binary, encode_json
-from ._requests import Encoding, Request, UpLike, query, registration_options, upload
+from ._requests import (
+    Encoding,
+    Request,
+    UpLike,
+    model_points_params,
+    query,
+    registration_options,
+    up_vector,
+    upload,
+)
 from ._version import __version__
 
 logger = logging.getLogger("catalign_client")
@@ -118,6 +128,14 @@ class _BaseClient:
         data = {name: value for name, value in fields.items() if value is not None}
         return Request("POST", "/models", files=upload(path), data=data or None, idempotent=False)
 
+    def _model_points_request(self, model_id: str, *, max_points: int) -> Request:
+        return Request(
+            "GET",
+            self._model_path(model_id) + "/points",
+            params=model_points_params(max_points),
+            headers={"Accept": "application/octet-stream, application/json"},
+        )
+
     @staticmethod
     def _model_path(model_id: str) -> str:
         if not isinstance(model_id, str) or not model_id:
@@ -182,6 +200,29 @@ class _BaseClient:
                 f"({response.headers.get('content-type', 'no content type')})"
             ) from exc
 
+    @staticmethod
+    def _result(body: Any, up: UpLike | None) -> AlignResult:
+        """The typed answer of ``POST /register``, remembering the ``up`` that was asked for."""
+        if up is None:
+            return AlignResult.from_json(body)
+        x, y, z = up_vector(up)
+        return AlignResult.from_json(body, up=(x, y, z))
+
+    @staticmethod
+    def _points(response: httpx.Response) -> np.ndarray:
+        """An (N, 3) float64 array from a raw little-endian float32 answer; errors raise."""
+        if not response.is_success:
+            raise error_from_response(response)
+        where = f"{response.request.method} {response.request.url.path}"
+        body = response.content
+        if len(body) % 12:
+            raise DecodingError(f"{where}: {len(body)} bytes are not whole float32 x y z triples")
+        count = len(body) // 12
+        declared = response.headers.get("x-point-count")
+        if declared is not None and declared.strip() != str(count):
+            raise DecodingError(f"{where}: X-Point-Count says {declared}, the body holds {count}")
+        return np.frombuffer(body, dtype="<f4").reshape(count, 3).astype(np.float64)
+
     @classmethod
     def _ready(cls, response: httpx.Response) -> bool:
         """``True`` when ready, ``False`` on 503 (starting or busy); other errors raise."""
@@ -245,8 +286,9 @@ class Client(_BaseClient):
     ) -> AlignResult:
         """Find the library model that best explains ``points`` and its pose.
 
-        ``points``: an (N, 3) array-like, nested lists, or an object with ``.points`` (Open3D)
-        or ``.vertices`` (trimesh). ``top_k``: how many shortlisted models to register (server
+        ``points``: an (N, 3) array-like, nested lists, an object with ``.points`` (Open3D)
+        or ``.vertices`` (trimesh), or a ROS ``sensor_msgs/msg/PointCloud2`` message (its finite
+        x, y, z; NaN returns dropped). ``top_k``: how many shortlisted models to register (server
         default when ``None``). ``up``: the observation's up direction, e.g. ``(0, 0, 1)``.
         ``estimate_scale``: also fit a uniform scale. ``seed``: for a reproducible answer.
         ``encoding``: ``"binary"`` (float32, compact) or ``"json"``.
@@ -254,7 +296,7 @@ class Client(_BaseClient):
         request = self._align_request(
             points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
         )
-        return AlignResult.from_json(self._call(request))
+        return self._result(self._call(request), up)
 
     def align_file(
         self,
@@ -269,7 +311,7 @@ class Client(_BaseClient):
         request = self._align_file_request(
             path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
         )
-        return AlignResult.from_json(self._call(request))
+        return self._result(self._call(request), up)
 
     def models(self) -> list[ModelInfo]:
         """Every model of the server's library."""
@@ -278,6 +320,21 @@ class Client(_BaseClient):
     def model(self, model_id: str) -> ModelInfo:
         """One library model; :class:`NotFoundError` when there is none with that id."""
         return ModelInfo.from_json(self._call(Request("GET", self._model_path(model_id))))
+
+    def model_points(self, model_id: str, *, max_points: int = 5000) -> np.ndarray:
+        """A library model's surface points, in model coordinates, as an (N, 3) float64 array.
+
+        The server thins them evenly to at most ``max_points`` (1 to 20,000); move them into the
+        observation with an :class:`AlignResult`'s pose, or hand them to
+        :meth:`AlignResult.plot`. :class:`NotFoundError` when there is no model with that id.
+
+        Usage::
+
+            result = client.align(points, up=(0, 0, 1))
+            model = client.model_points(result.model_id, max_points=2000)
+            in_view = model @ result.pose[:3, :3].T + result.pose[:3, 3]
+        """
+        return self._points(self._send(self._model_points_request(model_id, max_points=max_points)))
 
     def add_model(
         self, path: str | Path, *, model_id: str | None = None, units: str | None = None
@@ -376,7 +433,7 @@ class AsyncClient(_BaseClient):
         request = self._align_request(
             points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
         )
-        return AlignResult.from_json(await self._call(request))
+        return self._result(await self._call(request), up)
 
     async def align_file(
         self,
@@ -391,7 +448,7 @@ class AsyncClient(_BaseClient):
         request = self._align_file_request(
             path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
         )
-        return AlignResult.from_json(await self._call(request))
+        return self._result(await self._call(request), up)
 
     async def models(self) -> list[ModelInfo]:
         """See :meth:`Client.models`."""
@@ -400,6 +457,11 @@ class AsyncClient(_BaseClient):
     async def model(self, model_id: str) -> ModelInfo:
         """See :meth:`Client.model`."""
         return ModelInfo.from_json(await self._call(Request("GET", self._model_path(model_id))))
+
+    async def model_points(self, model_id: str, *, max_points: int = 5000) -> np.ndarray:
+        """See :meth:`Client.model_points`."""
+        request = self._model_points_request(model_id, max_points=max_points)
+        return self._points(await self._send(request))
 
     async def add_model(
         self, path: str | Path, *, model_id: str | None = None, units: str | None = None

@@ -11,11 +11,18 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ._exceptions import DecodingError
+from ._plot import plot_alignment
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from ._points import PointsLike
 
 
 @dataclass(frozen=True, slots=True)
@@ -33,7 +40,8 @@ class AlignResult:
     ``pose`` is a read-only 4x4 float64 matrix mapping model coordinates (of the library entry's
     source file) into the observation: ``x_obs = pose[:3, :3] @ x_model + pose[:3, 3]``. With
     ``estimate_scale`` the upper-left block is ``scale * rotation``. ``points_set_aside``
-    counts query points the server dropped as far outliers before registering.
+    counts query points the server dropped as far outliers before registering. ``up`` is the
+    up direction the request gave (not part of the answer; ``None`` when not given).
 
     Usage::
 
@@ -52,6 +60,7 @@ class AlignResult:
     timings_ms: dict[str, float] = field(repr=False)
     request_id: str
     points_set_aside: int = 0
+    up: tuple[float, float, float] | None = None
 
     @property
     def rotation(self) -> np.ndarray:
@@ -79,9 +88,33 @@ class AlignResult:
             "points_set_aside": self.points_set_aside,
         }
 
+    def plot(
+        self,
+        observed: PointsLike,
+        model_points: PointsLike,
+        path: str | Path | None = None,
+        *,
+        title: str | None = None,
+    ) -> Figure:
+        """Draw the observation against the posed model in three orthographic views.
+
+        The views are top, front and side around :attr:`up` when the request gave one (else
+        x-y, x-z and y-z); ``model_points`` (in model coordinates, e.g. from
+        :meth:`Client.model_points`) are moved by :attr:`pose` and drawn in another colour. The
+        title names the model and the fitness. Returns the matplotlib ``Figure`` and writes a
+        PNG to ``path`` when given. Needs matplotlib: ``pip install "catalign-client[plot]"``.
+
+        Usage::
+
+            result = client.align(points, up=(0, 0, 1))
+            model = client.model_points(result.model_id)
+            result.plot(points, model, "alignment.png")
+        """
+        return plot_alignment(self, observed, model_points, path, title=title)
+
     @classmethod
-    def from_json(cls, data: Any) -> AlignResult:
-        """Parse the body of a ``POST /register`` answer."""
+    def from_json(cls, data: Any, *, up: tuple[float, float, float] | None = None) -> AlignResult:
+        """Parse the body of a ``POST /register`` answer; ``up`` is the request's, if any."""
         body = _mapping(data, "register answer")
         pose = _pose(body.get("pose"))
         candidates = [
@@ -101,6 +134,7 @@ class AlignResult:
             timings_ms={str(k): _float(timings, k) for k in timings},
             request_id=str(body.get("request_id") or ""),
             points_set_aside=_int(body, "points_set_aside") if "points_set_aside" in body else 0,
+            up=up,
         )
 
 

@@ -1,7 +1,8 @@
 """Turning whatever a robot holds into the (N, 3) points the service takes, and onto the wire.
 
-Robots hold point clouds as numpy arrays, nested lists, Open3D clouds (``.points``) or trimesh
-objects (``.vertices``); the SDK must accept all of them without importing those libraries. Bad
+Robots hold point clouds as numpy arrays, nested lists, Open3D clouds (``.points``), trimesh
+objects (``.vertices``) or ROS ``sensor_msgs/msg/PointCloud2`` messages (read in
+:mod:`._pointcloud2`); the SDK must accept all of them without importing those libraries. Bad
 points are refused here, before any bytes travel, with a message that says what is wrong, so a
 caller learns about a NaN from the SDK rather than from a 422 a round trip later. Encoding lives
 here too: raw little-endian float32 (12 bytes a point, the default) or JSON.
@@ -15,6 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ._exceptions import InvalidPointsError
+from ._pointcloud2 import PointCloud2Like, is_pointcloud2, pointcloud2_points
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
@@ -35,11 +37,17 @@ class HasVertices(Protocol):
     def vertices(self) -> Any: ...
 
 
-PointsLike: TypeAlias = "npt.ArrayLike | HasPoints | HasVertices"
+PointsLike: TypeAlias = "npt.ArrayLike | HasPoints | HasVertices | PointCloud2Like"
 
 
 def as_points(points: PointsLike) -> np.ndarray:
-    """A C-contiguous (N, 3) float64 copy of ``points``, or :class:`InvalidPointsError`."""
+    """A C-contiguous (N, 3) float64 copy of ``points``, or :class:`InvalidPointsError`.
+
+    A PointCloud2 message gives its finite points (NaN marks a missing return there); anything
+    else must be all finite.
+    """
+    if is_pointcloud2(points):
+        return pointcloud2_points(points)
     source = points
     if not isinstance(points, np.ndarray | list | tuple):
         for attribute in ("points", "vertices"):

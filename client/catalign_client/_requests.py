@@ -65,6 +65,13 @@ def registration_options(
     return options
 
 
+def model_points_params(max_points: int) -> dict[str, str]:
+    """The query of ``GET /models/{id}/points``; the server enforces its upper limit."""
+    if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < 1:
+        raise ValueError(f"max_points must be a positive integer, got {max_points!r}")
+    return {"max_points": str(max_points)}
+
+
 def up_vector(up: UpLike) -> list[float]:
     """Three finite numbers, not all zero, from a sequence or a ``"0,0,1"`` string."""
     parts: Sequence[Any] = up.split(",") if isinstance(up, str) else up

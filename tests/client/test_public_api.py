@@ -25,6 +25,7 @@ EXPECTED = {
     "NotFoundError",
     "PayloadTooLargeError",
     "PermissionDeniedError",
+    "PointCloud2Like",
     "PointsLike",
     "ServerError",
     "ServiceUnavailableError",
