@@ -3,15 +3,16 @@
 # (scripts/setup.sh, idempotent) and then does its one job.
 set -euo pipefail
 cd "$(dirname "$0")"
-bash scripts/setup.sh
 case "${1:-}" in
     serve)
         shift
+        bash scripts/setup.sh
         # The shipped model and default library (model_store/), HTTP on 8000, gRPC on 50051.
         exec .venv/bin/catalign serve "$@"
         ;;
     test)
         shift
+        bash scripts/setup.sh --test
         exec .venv/bin/python -m pytest "$@"
         ;;
     *)

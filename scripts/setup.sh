@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up catalign on a fresh Linux machine with Python 3.11: the Debian package open3d needs,
 # a virtual environment in .venv, torch (local CPU wheel) first, then the project, its extras
-# and the client SDK. Idempotent: a second run only checks a stamp and returns in about a second.
+# and the client SDK; with --test also Chromium for the viewer's browser test. Idempotent: a
+# second run only checks a stamp and returns in about a second.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -17,6 +18,15 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+fi
+
+# The viewer's browser test drives headless Chromium; install it with apt where it is missing.
+if [ "${1:-}" = "--test" ] && { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; }; then
+    echo "setup: installing Debian packages chromium and chromium-driver (viewer browser test)"
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null
 fi
 
 want="$(cat pyproject.toml client/pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)"

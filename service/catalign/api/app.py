@@ -21,7 +21,7 @@ from catalign.api.deps import require_api_key
 from catalign.api.errors import install_error_handlers
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import RequestContextMiddleware
-from catalign.api.routes import health, models, register, system
+from catalign.api.routes import health, models, register, system, viewer
 from catalign.api.schemas import RegisterRequest
 from catalign.api.service import RegistrationService
 from catalign.api.settings import ServiceSettings
@@ -84,6 +84,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     app.include_router(register.router, dependencies=guarded)
     app.include_router(models.router, dependencies=guarded)
     app.include_router(system.router, dependencies=guarded)
+    app.include_router(viewer.router)  # public pages; the calls they make carry the key
+    app.mount(viewer.STATIC_URL, viewer.static_files(), name="viewer-static")
     _document_request_models(app, RegisterRequest)
     return app
 
