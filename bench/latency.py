@@ -27,6 +27,7 @@ from catalign.features.extractor import LearnedExtractor
 from catalign.geometry.sampling import subsample
 from catalign.library.index import build_procedural, load
 from catalign.registration.base import LibraryShape
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.registration.methods import build_registrar
 
@@ -60,7 +61,7 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 200, 1000])
     parser.add_argument("--fpfh-sizes", type=int, nargs="+", default=[10, 50])
     parser.add_argument("--runs", type=int, default=5)
-    parser.add_argument("--top-k", type=int, default=10)
+    parser.add_argument("--top-k", type=int, default=EngineConfig().top_k)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cache", type=Path, default=Path(".cache/bench-libraries"))
     parser.add_argument("--model-dir", type=Path, default=None, help="weights (model_store/)")
@@ -76,7 +77,7 @@ def main() -> None:
         if not (folder / "manifest.json").is_file():
             build_procedural(folder, extractor, size, first_seed=0, overwrite=True)
         library = load(folder, extractor.fingerprint)
-        engine = Engine(extractor, library, headings=extractor.headings, top_k=args.top_k)
+        engine = Engine(extractor, library, config=EngineConfig(top_k=args.top_k))
         ms, answers = timed(lambda e=engine: e.register(points, up=WORLD_UP, seed=0), args.runs)
         rows.append(("learned engine", size, ms))
         stages.append((size, {k: np.median([a.timings_ms[k] for a in answers]) for k in STAGES}))

@@ -1,6 +1,8 @@
 """Speed against accuracy: the evaluation's test cases under several engine settings.
 
-Each setting (``name=value`` engine options, comma-separated; ``default`` for none) registers
+Each setting (``name=value`` :class:`~catalign.registration.config.EngineConfig` fields,
+comma-separated, ``none`` for None; ``default`` for none changed; an unknown name or a bad value
+fails before anything runs) registers
 every test case of ``catalign evaluate`` (both settings, every ``--seeds`` seed) through the
 same real library indexes, built once, and is scored exactly as the evaluation scores it. The
 per-query time is the engine's own (the sum of its stage timings), so the table compares
@@ -33,9 +35,9 @@ from catalign.evaluation.protocol import (
 from catalign.evaluation.report import summarise
 from catalign.features.extractor import LearnedExtractor
 from catalign.registration.base import LibraryShape
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
-from catalign.registration.methods import LEARNED_TOP_K
 
 RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
 RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
@@ -48,10 +50,11 @@ DEFAULT_CONFIGS = [
 ]
 
 
-def parse_config(text: str) -> dict[str, Any]:
-    """``a=1,b=0.5,c=none`` as engine keyword arguments (``default``: none given)."""
+def parse_config(text: str) -> EngineConfig:
+    """``a=1,b=0.5,c=none`` as an engine configuration (``default``: the defaults); an unknown
+    field or a bad value raises pydantic's ValidationError."""
     if text == "default":
-        return {}
+        return EngineConfig()
     options: dict[str, Any] = {}
     for item in text.split(","):
         name, _, value = item.partition("=")
@@ -60,7 +63,7 @@ def parse_config(text: str) -> dict[str, Any]:
             continue
         number = float(value)
         options[name.strip()] = int(number) if number.is_integer() else number
-    return options
+    return EngineConfig.model_validate(options)
 
 
 def engine_ms(outcome: CaseOutcome) -> float:
@@ -79,6 +82,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
+    configs = {text: parse_config(text) for text in args.configs}  # a typo fails here, early
     chairs = SharedChairs(args.chairs_dir)
     extractor = LearnedExtractor(args.model_dir)
     observed = metric_shapes(chairs, chairs.ids("val"))
@@ -86,19 +90,16 @@ def main() -> None:
     frames = frames_of(observed | libraries["cross"])
     registrars = {}
     for setting, shapes in libraries.items():
-        registrar = IndexedRegistrar(extractor, name="learned", headings=extractor.headings)
+        registrar = IndexedRegistrar(extractor, name="learned")
         registrar.prepare([LibraryShape(i, s.points) for i, s in sorted(shapes.items())])
         registrars[setting] = registrar
     cases = {seed: build_cases(observed, args.views, seed) for seed in args.seeds}
 
     rows = []
-    for text in args.configs:
-        options = {"top_k": LEARNED_TOP_K} | parse_config(text)
+    for text, config in configs.items():
         outcomes: dict[str, list[CaseOutcome]] = {"same": [], "cross": []}
         for setting, registrar in registrars.items():
-            engine = Engine(
-                extractor, registrar.engine.library, headings=extractor.headings, **options
-            )
+            engine = Engine(extractor, registrar.engine.library, config=config)
             for seed, seed_cases in cases.items():
                 for case in seed_cases:
                     result = engine.register(case.points, up=WORLD_UP, seed=seed)

@@ -250,7 +250,8 @@ def serve(
         first = error.errors()[0]
         if first["loc"]:
             name = str(first["loc"][0])
-            option = f"--{name.replace('_', '-')}" if name in flags else f"CATALIGN_{name.upper()}"
+            variable = "CATALIGN_" + "__".join(map(str, first["loc"])).upper()
+            option = f"--{name.replace('_', '-')}" if name in flags else variable
             typer.echo(f"error: {option}: {first['msg']}", err=True)
         else:  # a check across settings (the API key given twice, an unreadable key file)
             typer.echo(f"error: {first['msg'].removeprefix('Value error, ')}", err=True)

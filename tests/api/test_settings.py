@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from catalign.api.settings import DEFAULT_MODEL_DIR, ServiceSettings
 from catalign.cli import app
+from catalign.registration.config import EngineConfig
 
 
 def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -18,6 +19,23 @@ def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.Monkey
     monkeypatch.setenv("CATALIGN_READ_ONLY", "true")
     settings = ServiceSettings(port=9002)
     assert (settings.port, settings.max_points, settings.read_only) == (9002, 1234, True)
+
+
+def test_engine_options_come_from_nested_variables(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CATALIGN_ENGINE__TOP_K", "4")
+    monkeypatch.setenv("CATALIGN_ENGINE__MODEL_POINTS", "none")
+    settings = ServiceSettings()
+    assert (settings.engine.top_k, settings.engine.model_points) == (4, None)
+    assert settings.engine.match_points == EngineConfig().match_points
+    monkeypatch.setenv("CATALIGN_ENGINE__TOPK", "4")
+    with pytest.raises(ValidationError, match="topk"):
+        ServiceSettings()
+
+
+def test_a_renamed_variable_is_refused_with_its_new_name(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CATALIGN_TOP_K", "4")
+    with pytest.raises(ValidationError, match="CATALIGN_TOP_K is now CATALIGN_ENGINE__TOP_K"):
+        ServiceSettings()
 
 
 def test_defaults_serve_model_store() -> None:

@@ -11,6 +11,7 @@ from catalign.data.views import camera_at, render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import make_pose, rotation_error_deg
 from catalign.library.index import load
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -25,7 +26,7 @@ MIN_RECOVERED = 8
 def engine() -> Engine:
     extractor = LearnedExtractor()
     library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
-    return Engine(extractor, library, headings=extractor.headings, top_k=10)
+    return Engine(extractor, library, config=EngineConfig(headings=extractor.headings, top_k=10))
 
 
 def _recovered(engine: Engine, seed: int) -> bool:

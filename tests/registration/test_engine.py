@@ -8,22 +8,21 @@ import numpy as np
 import pytest
 
 from catalign.data.shapes import procedural_shape
-from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.deadline import Deadline
+from catalign.errors import DeadlineExceededError, DegenerateInputError, InvalidInputError
 from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
 from catalign.library.index import build, load
 from catalign.registration.alignment import mutual_nearest
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 
 SEEDS = (2, 8, 11)
 # FPFH matches are mostly wrong: match more query key points and every model key point, and
 # give RANSAC the budget the classic recipe gets
-FPFH_OPTIONS = {
-    "ransac_factor": 1.5,
-    "ransac_iterations": 100_000,
-    "match_points": 1_000,
-    "model_points": None,
-}
+FPFH_CONFIG = EngineConfig(
+    ransac_factor=1.5, ransac_iterations=100_000, match_points=1_000, model_points=None
+)
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +36,7 @@ def engine(tmp_path_factory) -> Engine:
     extractor = FPFHExtractor(voxel_size=0.03)
     build([sources], folder / "index", extractor, progress=False)
     library = load(folder / "index", extractor.fingerprint)
-    return Engine(extractor, library, **FPFH_OPTIONS)
+    return Engine(extractor, library, config=FPFH_CONFIG)
 
 
 def _observe(seed: int, pose: np.ndarray) -> np.ndarray:
@@ -113,7 +112,11 @@ def test_a_chair_of_another_size_is_centred_with_a_rigid_pose(engine: Engine) ->
     """A chair 15% larger than its library model (another instance, as far as the engine can
     tell) gets a rigid pose whose model centre sits on the observed chair's centre; without the
     refit at the observed size the rigid fit hugs one side of it by 2 to 4 cm."""
-    rigid_only = Engine(engine.extractor, engine.library, **FPFH_OPTIONS, exact_fitness=0.0)
+    rigid_only = Engine(
+        engine.extractor,
+        engine.library,
+        config=FPFH_CONFIG.model_copy(update={"exact_fitness": 0.0}),
+    )
     for seed in SEEDS:
         observed = procedural_shape(seed).scaled(1.15)
         pose = make_pose(
@@ -164,16 +167,34 @@ def test_matching_a_subset_of_model_key_points_still_recovers_the_pose(engine: E
     and the reported correspondences name the right model key points: under the true pose
     several times the share that chance would put next to their observed partners do (FPFH
     matches are mostly wrong: about 5% land there uncapped, under 1% for shuffled pairs)."""
-    options = FPFH_OPTIONS | {"model_points": engine.library["proc-0008"].num_keypoints // 2}
-    capped = Engine(engine.extractor, engine.library, **options)
+    cap = engine.library["proc-0008"].num_keypoints // 2
+    config = FPFH_CONFIG.model_copy(update={"model_points": cap})
+    capped = Engine(engine.extractor, engine.library, config=config)
     pose = make_pose(axis_angle(np.array([0.2, 1.0, 0.1]), 1.1), np.array([0.4, -0.2, 1.3]))
     result = capped.register(_observe(8, pose), seed=0)
     assert result.model_id == "proc-0008"
     assert rotation_error_deg(result.pose[:3, :3], pose[:3, :3]) < 2.0
     observed, model = result.correspondences
-    assert len(np.unique(model, axis=0)) <= capped.model_points
+    assert len(np.unique(model, axis=0)) <= cap
     gaps = np.linalg.norm(transform(model, pose) - observed, axis=1)
     assert np.mean(gaps < capped.ransac_distance) > 0.025
+
+
+def test_the_configuration_is_the_engines_one_source_of_options(engine: Engine) -> None:
+    plain = Engine(engine.extractor, engine.library)
+    assert plain.config == EngineConfig()
+    assert plain.headings == engine.extractor.headings == 1  # from the extractor
+    assert plain.ransac_distance == pytest.approx(2.0 * engine.extractor.voxel_size)
+    eight = Engine(engine.extractor, engine.library, config=EngineConfig(headings=8))
+    assert eight.headings == 8
+    assert engine.ransac_distance == pytest.approx(1.5 * engine.extractor.voxel_size)
+
+
+def test_a_stopped_deadline_stops_the_work(engine: Engine) -> None:
+    deadline = Deadline(None)
+    deadline.cancel("the client went away")
+    with pytest.raises(DeadlineExceededError, match="went away"):
+        engine.register(_observe(8, np.eye(4)), deadline=deadline)
 
 
 def test_shortlist_limits_the_candidates(engine: Engine) -> None:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
 from typing_extensions import TypeAliasType
 
+from catalign.registration.config import EngineConfig
+
 if TYPE_CHECKING:
     from catalign.library.entry import LibraryEntry
     from catalign.registration.base import RegistrationResult
@@ -197,6 +199,10 @@ class InfoResponse(BaseModel):
     library: LibraryInfo
     voxel_size: float
     headings: int
+    engine: EngineConfig = Field(
+        description="The engine's options in effect (``headings`` as resolved for the weights); "
+        "set them as CATALIGN_ENGINE__<FIELD> variables."
+    )
     versions: Versions
 
 

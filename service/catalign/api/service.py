@@ -207,6 +207,7 @@ class RegistrationService:
             ),
             voxel_size=extractor.voxel_size,
             headings=engine.headings,
+            engine=engine.config.model_copy(update={"headings": engine.headings}),
             versions=Versions(
                 python=platform.python_version(),
                 torch=str(torch.__version__),
@@ -301,7 +302,7 @@ class RegistrationService:
     def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
         from catalign.registration.engine import Engine
 
-        return Engine(extractor, library, headings=extractor.headings, top_k=self.settings.top_k)
+        return Engine(extractor, library, config=self.settings.engine)
 
     def _register(
         self, engine: Engine, query: PointQuery, submitted: float, deadline: Deadline

@@ -2,24 +2,28 @@
 
 Every knob of ``catalign serve`` lives here, validated once at the edge (a bad port or a zero
 queue fails at start-up with a sentence, not at the first request); command-line flags are passed
-as keyword arguments and so override the environment. Nothing below the API layer sees this
-class: :class:`~catalign.api.service.RegistrationService` turns it into plain arguments.
+as keyword arguments and so override the environment. The engine's options are one nested
+:class:`~catalign.registration.config.EngineConfig`, set as ``CATALIGN_ENGINE__<FIELD>``
+(``CATALIGN_ENGINE__TOP_K=5``). Nothing below the API layer sees this class:
+:class:`~catalign.api.service.RegistrationService` turns it into plain arguments and the
+engine's configuration.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-import catalign
+from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.config import EngineConfig
 
 MiB = 1 << 20
-# The repository's model_store/ (as catalign.features.extractor.DEFAULT_MODEL_DIR, which is not
-# imported here because it imports torch; a test checks that both agree).
-DEFAULT_MODEL_DIR = Path(catalign.__file__).resolve().parents[2] / "model_store"
+# Variables that moved: refused with their new name rather than silently ignored.
+RENAMED = {"CATALIGN_TOP_K": "CATALIGN_ENGINE__TOP_K"}
 
 
 class ServiceSettings(BaseSettings):
@@ -34,10 +38,17 @@ class ServiceSettings(BaseSettings):
     ``spool_dir`` (default: the library's ``.spool`` folder, or the system's temporary folder
     when the library is read-only). ``api_key`` (or the first line of ``api_key_file``), when
     set, is required in the ``X-API-Key`` header (gRPC: ``x-api-key`` metadata) by every
-    endpoint but the health checks.
+    endpoint but the health checks. ``engine`` holds the registration engine's options, the
+    default shortlist size ``top_k`` among them (``CATALIGN_ENGINE__TOP_K``).
     """
 
-    model_config = SettingsConfigDict(env_prefix="CATALIGN_", extra="forbid", frozen=True)
+    model_config = SettingsConfigDict(
+        env_prefix="CATALIGN_",
+        env_nested_delimiter="__",
+        env_parse_none_str="none",  # CATALIGN_ENGINE__MODEL_POINTS=none: every key point
+        extra="forbid",
+        frozen=True,
+    )
 
     library: Path = Field(default=DEFAULT_MODEL_DIR / "library", description="Library folder.")
     model_dir: Path = Field(default=DEFAULT_MODEL_DIR, description="Extractor weights folder.")
@@ -56,9 +67,17 @@ class ServiceSettings(BaseSettings):
     read_only: bool = False
     max_body_bytes: int = Field(default=64 * MiB, ge=1024, description="Request body limit.")
     max_points: int = Field(default=500_000, ge=1, description="Points a query may have.")
-    top_k: int | None = Field(default=10, ge=1, description="Default shortlist (None: all).")
+    engine: EngineConfig = Field(default_factory=EngineConfig, description="Engine options.")
     warmup: bool = Field(default=True, description="Run one registration before ready.")
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_renamed_variables(cls, data: object) -> object:
+        for old, new in RENAMED.items():
+            if old in os.environ:
+                raise ValueError(f"{old} is now {new}; rename it in the environment")
+        return data
 
     @field_validator("api_key")
     @classmethod

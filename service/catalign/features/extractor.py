@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[3] / "model_store"
+from catalign.paths import DEFAULT_MODEL_DIR
 
 
 @dataclass(frozen=True)
@@ -28,8 +28,12 @@ class Described:
 
 
 class FeatureExtractor(Protocol):
+    """What registration and the library need of an extractor: its voxel size, its fingerprint,
+    how many headings a query must be described at, and the description itself."""
+
     voxel_size: float
     fingerprint: str
+    headings: int
 
     def describe(self, points: np.ndarray) -> Described: ...
 
@@ -70,6 +74,8 @@ class LearnedExtractor:
 
 class FPFHExtractor:
     """Open3D's FPFH (33-D) on a voxel-down-sampled cloud: normals within 2 voxels, FPFH 5."""
+
+    headings = 1  # rotation-invariant: one heading describes every heading
 
     def __init__(self, voxel_size: float = 0.025) -> None:
         self.voxel_size = voxel_size

@@ -23,6 +23,19 @@ def invert(pose: np.ndarray) -> np.ndarray:
     return make_pose(rotation.T, -rotation.T @ translation)
 
 
+def scale_of(pose: np.ndarray) -> float:
+    """The scale of a similarity pose (``x_obs = s R x_model + t``): 1 for a rigid one."""
+    return float(np.cbrt(np.linalg.det(pose[:3, :3])))
+
+
+def split_scale(pose: np.ndarray) -> tuple[np.ndarray, float]:
+    """A similarity pose as its rigid part and its scale."""
+    scale = scale_of(pose)
+    rigid = pose.copy()
+    rigid[:3, :3] /= scale
+    return rigid, scale
+
+
 def compose(*poses: np.ndarray) -> np.ndarray:
     """``compose(A, B, C) = A @ B @ C``: apply C first."""
     out = np.eye(4)

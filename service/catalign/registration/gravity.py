@@ -19,8 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from catalign.errors import InvalidInputError
+from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import rotation_between
-from catalign.registration.ransac import MODEL_UP, count_inliers, residual_terms
+from catalign.registration.ransac import count_inliers, residual_terms
 
 # Only the best poses by inlier count are worth suppressing among: the rest never get checked.
 _SUPPRESSION_WINDOW = 256
@@ -47,7 +48,7 @@ def leveller(up: np.ndarray) -> np.ndarray:
     up = np.asarray(up, dtype=np.float64).reshape(-1)
     if up.shape != (3,) or not np.linalg.norm(up) > 0 or not np.isfinite(up).all():
         raise InvalidInputError(f"up must be a finite non-zero 3-vector, got {up.tolist()}")
-    return rotation_between(up, np.asarray(MODEL_UP))
+    return rotation_between(up, MODEL_UP)
 
 
 def yaw_rotations(yaws: np.ndarray) -> np.ndarray:

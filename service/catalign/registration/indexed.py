@@ -16,26 +16,26 @@ import numpy as np
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import build, load
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 
 
 class IndexedRegistrar(Registrar):
-    """The engine, prepared from in-memory shapes through an on-disk index."""
+    """The engine, prepared from in-memory shapes through an on-disk index; ``config`` is the
+    engine's (its defaults when not given), ``up`` the world's up direction when known."""
 
     def __init__(
         self,
         extractor: FeatureExtractor,
         *,
         name: str,
-        headings: int = 1,
         up: np.ndarray | None = None,
-        top_k: int | None = None,
+        config: EngineConfig | None = None,
     ) -> None:
         self.extractor = extractor
         self.name = name
-        self.headings = headings
         self.up = up
-        self.top_k = top_k
+        self.config = config
         self.engine: Engine | None = None
 
     def prepare(self, library: Sequence[LibraryShape]) -> None:
@@ -46,7 +46,7 @@ class IndexedRegistrar(Registrar):
                 np.save(sources / f"{shape.model_id}.npy", shape.points.astype(np.float32))
             build([sources], Path(folder) / "index", self.extractor, progress=False)
             index = load(Path(folder) / "index", self.extractor.fingerprint)
-        self.engine = Engine(self.extractor, index, headings=self.headings, top_k=self.top_k)
+        self.engine = Engine(self.extractor, index, config=self.config)
 
     def register(self, points: np.ndarray, *, seed: int = 0) -> RegistrationResult:
         if self.engine is None:

@@ -5,8 +5,9 @@
 * ``learned``: FCGF features from the trained ResUNet in ``model_store/`` (or ``model_dir``)
   through a real library index and the query :class:`~catalign.registration.engine.Engine`
   (vectorised RANSAC with inliers within 2 voxels, since different instances never match
-  exactly; ICP within 1; the up prior when given), on the engine's shortlist of the 10 most
-  similar models by global descriptor.
+  exactly; ICP within 1; the up prior when given), with the engine's default configuration
+  (:class:`~catalign.registration.config.EngineConfig`: a shortlist of the 10 most similar
+  models by global descriptor).
 * ``fpfh-engine``: the learned method's index and engine with FPFH features in place of the
   learned ones (one heading: FPFH does not depend on orientation), so that the two features
   are compared with everything else equal.
@@ -37,19 +38,15 @@ def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
     from catalign.registration.indexed import IndexedRegistrar
 
     extractor = LearnedExtractor(model_dir)
-    return IndexedRegistrar(
-        extractor, name="learned", headings=extractor.headings, up=up, top_k=LEARNED_TOP_K
-    )
+    return IndexedRegistrar(extractor, name="learned", up=up)
 
 
 def _fpfh_engine(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.indexed import IndexedRegistrar
 
-    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up, top_k=LEARNED_TOP_K)
+    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up)
 
-
-LEARNED_TOP_K = 10
 
 METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {
     "fpfh": _fpfh,

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.frames import MODEL_UP
 
-MODEL_UP = (0.0, 1.0, 0.0)
 UpCheck = Callable[[np.ndarray], np.ndarray]
 # Score at most this many (correspondence, hypothesis) residuals at once: 32 MiB of float64.
 _SCORE_CHUNK = 1 << 22

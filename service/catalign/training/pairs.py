@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from catalign.data.shapes import Shape
 from catalign.data.views import random_camera, random_object_pose, render_view
+from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample, voxel_grid
 from catalign.geometry.se3 import axis_angle, invert, random_rotation, transform
@@ -34,7 +35,6 @@ PairKind = Literal["same", "cross"]
 RotationMode = Literal["upright", "yaw-bin", "yaw-quarter", "so3"]
 # Headings a query is tried at for each binned mode; training yaws span one bin, +-180/n degrees.
 YAW_BINS = {"yaw-bin": 8, "yaw-quarter": 4}
-MODEL_UP = np.array([0.0, 1.0, 0.0])
 
 
 def augmentation_rotation(

@@ -17,7 +17,7 @@ import { readCloud, readFloats } from './formats.js';
 const COLORS = { background: 0xfafafa, observed: 0x1f5fa8, model: 0xe8730c };
 const POINT_SIZE_PX = 3;
 const MODEL_POINTS = 5000;
-const MODEL_UP = [0, 1, 0]; // library models stand on +Y (catalign.registration.ransac.MODEL_UP)
+const MODEL_UP = [0, 1, 0]; // library models stand on +Y (catalign.frames.MODEL_UP)
 const VIEW_AZIMUTH_DEG = -60; // initial camera: around the up axis ...
 const VIEW_ELEVATION_DEG = 25; // ... and above the horizon
 const FIT_MARGIN = 0.85; // < 1: the bounding sphere is looser than the cloud's outline

@@ -1,0 +1,113 @@
+"""The category-level fit: placing another instance's frame where the observed chair's is.
+
+With ``up``, a winner that does not fit the query exactly is another instance of the category,
+and ICP lays it onto the observation as well as a differently shaped chair allows: a smaller
+model hugs one side, a tilt hugs a different back. The category-level pose is the model's frame
+(its bounding-box centre) placed where the observed chair's is, so the fit is redone in three
+steps, the pose staying rigid throughout:
+
+1. **refit at the observed size**: ICP against the model scaled about its centre to the
+   observed height (within :data:`SIZE_RANGE`), keeping the rigid pose that puts the unscaled
+   centre where the scaled fit put it;
+2. **stand upright**: with gravity known a tilt is fitting error, not pose
+   (:func:`~catalign.registration.gravity.level_pose` about the model's centre);
+3. **centre on the extent**: along each model axis (height, width, depth) on which the view
+   spans nearly all of the model (:data:`FULL_SPAN_SHARE`), the pose is shifted so that both
+   spans share their middle; where a side is hidden the fitted position is kept. Stray points
+   (a sensor's flying pixels) would stretch a span, so only key points with neighbours count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import KW_ONLY, dataclass, replace
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from catalign.geometry.se3 import make_pose
+from catalign.library.index import Library
+from catalign.registration.gravity import level_pose
+from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.refine import Refiner
+from catalign.registration.verify import surface_sample
+
+# A view spanning less of the model along an axis than this has lost that side from sight.
+FULL_SPAN_SHARE = 0.8
+# Sizes of another instance, relative to the model, that the refit considers.
+SIZE_RANGE = (0.8, 1.25)
+
+
+@dataclass(frozen=True, eq=False)
+class CategoryFitter:
+    """Fits another instance's rigid pose to the observed chair's frame.
+
+    ``refiner`` runs the ICP against ``library`` models; ``support_radius`` is how near
+    (metres) a key point's two neighbours must be for it to count in the observed extent;
+    ``extent_points`` how many model surface points give the model's extent (the coverage
+    check's sample).
+    """
+
+    library: Library
+    refiner: Refiner
+    _: KW_ONLY
+    support_radius: float
+    extent_points: int
+
+    def fit(
+        self,
+        hypothesis: Hypothesis,
+        query: o3d.geometry.PointCloud,
+        keypoints: np.ndarray,
+        turn: np.ndarray,
+    ) -> Hypothesis:
+        """The three steps (module docstring) for the winner ``hypothesis`` of the query
+        (``query``, its ``keypoints``), whose levelling turn is ``turn``."""
+        height = float(np.ptp(keypoints @ turn[1]))
+        hypothesis = self.fit_at_observed_size(hypothesis, query, height)
+        hypothesis = self.stand_upright(hypothesis, turn)
+        return self.centre_on_extent(hypothesis, keypoints)
+
+    def fit_at_observed_size(
+        self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud, observed_height: float
+    ) -> Hypothesis:
+        """ICP once more against the model scaled about its centre to the observed height,
+        keeping the rigid pose that puts the (unscaled) centre where the scaled fit put it."""
+        entry = self.library[hypothesis.model_id]
+        scale = float(np.clip(observed_height / entry.size[1], *SIZE_RANGE))
+        if abs(scale - 1.0) < 0.02:
+            return hypothesis
+        centre = entry.centre
+        rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
+        # x = R (s p + (1 - s) c) + t = R y + t_s for y = s p on the origin-scaled surface
+        start = make_pose(rotation, translation + (1 - scale) * rotation @ centre)
+        fitted = self.refiner.icp(query, hypothesis.model_id, scale, start)
+        fitted[:3, 3] -= (1 - scale) * fitted[:3, :3] @ centre
+        return replace(hypothesis, transform=fitted)
+
+    def stand_upright(self, hypothesis: Hypothesis, turn: np.ndarray) -> Hypothesis:
+        """The pose stood upright about the model's centre (:func:`level_pose`)."""
+        centre = self.library[hypothesis.model_id].centre
+        return replace(hypothesis, transform=level_pose(hypothesis.transform, turn, centre))
+
+    def centre_on_extent(self, hypothesis: Hypothesis, keypoints: np.ndarray) -> Hypothesis:
+        """The (upright) pose shifted along each of the model's axes on which the observation
+        spans nearly all of the model, so that the two spans share their middle there."""
+        points = self.library[hypothesis.model_id].points
+        sample = surface_sample(points, self.extent_points)
+        rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
+        observed = (supported(keypoints, self.support_radius) - translation) @ rotation
+        shift = (observed.max(axis=0) + observed.min(axis=0)) / 2
+        shift -= (sample.max(axis=0) + sample.min(axis=0)) / 2
+        full = np.ptp(observed, axis=0) >= FULL_SPAN_SHARE * np.ptp(sample, axis=0)
+        pose = hypothesis.transform.copy()
+        pose[:3, 3] += rotation @ np.where(full, shift, 0.0)
+        return replace(hypothesis, transform=pose)
+
+
+def supported(points: np.ndarray, radius: float, neighbours: int = 2) -> np.ndarray:
+    """The points with at least ``neighbours`` others within ``radius`` (all of them when fewer
+    than half are)."""
+    counts = np.array([len(n) for n in cKDTree(points).query_ball_point(points, radius)]) - 1
+    solid = points[counts >= neighbours]
+    return solid if len(solid) >= 0.5 * len(points) else points

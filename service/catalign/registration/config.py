@@ -1,0 +1,109 @@
+"""The engine's configuration: one typed, frozen model of every knob of every stage.
+
+:class:`EngineConfig` is validated once, where it enters (the service's settings, a benchmark's
+command line, a test), and the engine turns it into plain keyword arguments of its stages, so
+no configuration object travels below :class:`~catalign.registration.engine.Engine`. It imports
+nothing heavy (no torch, no open3d): the API's settings embed it, and ``/info`` reports it.
+:func:`from_config` builds a stage whose options are named as the configuration's fields.
+Each field's docstring is its documentation (also in the JSON schema); an unknown field is
+refused, so a typo in ``CATALIGN_ENGINE__<FIELD>`` or a benchmark's ``name=value`` fails loudly.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from catalign.registration.validation import FINE_CELLS, MIN_VOXELS
+
+Stage = TypeVar("Stage")
+
+
+def _one_line_descriptions(schema: dict[str, Any]) -> None:
+    """Docstrings wrap at the source's line length; the JSON schema (``/info``,
+    ``openapi.yaml``) gets each as one line."""
+    for part in [schema, *schema.get("properties", {}).values()]:
+        if "description" in part:
+            part["description"] = " ".join(part["description"].split())
+
+
+class EngineConfig(BaseModel):
+    """Every option of the query engine; the defaults are the measured ones
+    (``bench/tradeoff.py`` compares alternatives on the evaluation's cases)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        frozen=True,
+        use_attribute_docstrings=True,
+        json_schema_extra=_one_line_descriptions,
+    )
+
+    headings: int | None = Field(default=None, ge=1)
+    """Headings the query is described at (None: the extractor's, 8 for ``yaw-bin`` models,
+    else 1)."""
+    top_k: int | None = Field(default=10, ge=1)
+    """Default shortlist size: library models registered per query (None: every entry)."""
+    ransac_factor: float = Field(default=2.0, gt=0)
+    """RANSAC and verification inlier distance, in voxels."""
+    icp_factor: float = Field(default=1.0, gt=0)
+    """ICP inlier distance, in voxels."""
+    up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
+    """How far the chair's up may tilt from the given ``up`` in the three-point search."""
+    min_points: int = Field(default=MIN_VOXELS, ge=1)
+    """Occupied voxels a query needs."""
+    keep_headings: int = Field(default=3, ge=1)
+    """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
+    models."""
+    heading_models: int = Field(default=10, ge=1)
+    """Best shortlisted models the headings are chosen on."""
+    heading_draws: int = Field(default=300, ge=1)
+    """With ``up``: pairs the two-point search draws on each of those models to rank a
+    heading."""
+    ransac_iterations: int = Field(default=5_000, ge=1)
+    """Cap on draws of the three-point RANSAC (without ``up``, or with ``estimate_scale``)."""
+    pair_draws: int = Field(default=3_000, ge=1)
+    """Pairs the two-point search draws per candidate and heading."""
+    poses_per_view: int = Field(default=8, ge=1)
+    """Distinct poses the two-point search keeps per candidate and heading."""
+    probe_points: int = Field(default=384, ge=1)
+    """Query key points used to rank headings and to verify poses."""
+    coverage_points: int = Field(default=1_500, ge=1)
+    """Model surface points for the coverage check (and the model's extent in the category
+    fit)."""
+    match_points: int | None = Field(default=500, ge=1)
+    """Query key points that take part in matching (None: all)."""
+    model_points: int | None = Field(default=1_000, ge=1)
+    """Each model's key points that take part in matching (None: all); fewer matched points
+    measured as accurate and a third faster (``bench/tradeoff.py``)."""
+    verify_top: int = Field(default=32, ge=1)
+    """Poses, best by the surface check, that get the coverage check."""
+    refine: int = Field(default=3, ge=1)
+    """Poses that get ICP."""
+    exact_fitness: float = Field(default=0.9, ge=0, le=1)
+    """The share of the query within one ICP distance of the model above which the model is
+    taken to be the observed instance itself, and its fitted pose is not recentred."""
+    fine_cells: int | None = Field(default=FINE_CELLS, ge=1)
+    """Cells per voxel edge of the grid a dense query is down-sampled to first (None:
+    never)."""
+    pass_voxels: int = Field(default=32_000, ge=1)
+    """Query voxels, over all headings, that one forward pass may describe (bounds its
+    memory)."""
+
+
+def from_config(
+    stage: Callable[..., Stage], config: EngineConfig, /, *args: Any, **given: Any
+) -> Stage:
+    """``stage(*args, **given)``, each of its other keyword-only options taken from the
+    ``config`` field of the same name. A stage names its options as the configuration does;
+    what it needs beyond them (the library, distances in metres) the caller gives. An option
+    that is neither given nor a field fails loudly (AttributeError)."""
+    options = inspect.signature(stage).parameters.values()
+    taken = {
+        option.name: getattr(config, option.name)
+        for option in options
+        if option.kind is option.KEYWORD_ONLY and option.name not in given
+    }
+    return stage(*args, **given, **taken)

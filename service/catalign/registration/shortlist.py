@@ -1,0 +1,33 @@
+"""Shortlisting: the library models worth registering the query against, best first.
+
+Matching and RANSAC cost the same for every candidate, so the query is first compared with every
+library entry through the cheap scores of :mod:`catalign.library.retrieval`: global-descriptor
+similarity, a size check, and with ``up`` the query's height (a view usually shows a chair from
+its feet to the top of its back). The query is scored at each heading it was described at and
+keeps each model's best score, since only the right heading's features look like the models'.
+The order matters even when every model is kept: the first few also choose the headings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from catalign.library.index import Library
+from catalign.library.retrieval import global_descriptor, retrieval_scores
+from catalign.registration.describe import QueryView
+
+
+def shortlist(
+    library: Library, views: list[QueryView], k: int | None, turn: np.ndarray | None
+) -> list[str]:
+    """The ids of the ``k`` (None: all) library models most like the query, best first (ties
+    in library order). ``views`` are the query at each heading; ``turn`` is the levelling turn
+    when ``up`` is known (its second row is ``up`` in the observation frame), else None."""
+    keypoints = views[0].keypoints
+    size = np.ptp(keypoints, axis=0)
+    height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
+    scores = np.max(
+        [retrieval_scores(library, global_descriptor(v.features), size, height) for v in views],
+        axis=0,
+    )
+    return [library.ids[i] for i in np.argsort(-scores, kind="stable")[:k]]

@@ -1,0 +1,153 @@
+"""Verification: scoring pose hypotheses by the surfaces they put together, not by their votes.
+
+Every pose is scored by how much of the query it lays onto the candidate's surface
+(:class:`~catalign.registration.verification.SurfaceCheck`, cheap: every pose gets it), and the
+``verify_top`` best also by how much of that surface inside the observed region the query covers
+(:class:`~catalign.registration.verification.CoverageCheck`). Their product tells a chair's front
+from its side where inlier counts cannot. With ``up``, a layout factor
+(:class:`~catalign.registration.verification.LayoutCheck`: does the query's top lean the way the
+posed model's does) nudges it, which tells the front from the back of another instance. The
+checks themselves live in :mod:`~catalign.registration.verification`; this module applies them
+to hypotheses, with the per-model pieces (surface tree, coverage sample, top offset) cached.
+"""
+
+from __future__ import annotations
+
+from dataclasses import KW_ONLY, dataclass, field
+
+import numpy as np
+
+from catalign.frames import MODEL_UP
+from catalign.library.index import Library
+from catalign.registration.base import Candidate
+from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.verification import (
+    CoverageCheck,
+    LayoutCheck,
+    SurfaceCheck,
+    top_offset,
+)
+
+
+@dataclass(frozen=True)
+class QueryChecks:
+    """The query's side of verification: the probe points the surface check carries onto each
+    model, the coverage check of the observed region, and the layout check (None without
+    ``up``)."""
+
+    probes: np.ndarray
+    coverage: CoverageCheck
+    layout: LayoutCheck | None
+
+
+@dataclass(frozen=True)
+class Scored:
+    """A hypothesis and its verification score (higher is better)."""
+
+    hypothesis: Hypothesis
+    score: float
+
+
+def surface_sample(points: np.ndarray, count: int) -> np.ndarray:
+    """About ``count`` of a model's surface ``points`` (every n-th, float64): the coverage
+    check's sample, and the model's extent where a stage needs it cheaply."""
+    step = max(1, len(points) // count)
+    return points[::step].astype(np.float64)
+
+
+@dataclass(eq=False)
+class Verifier:
+    """Scores poses against ``library`` models, with each model's checks cached.
+
+    ``distance`` is the inlier distance (metres) of every check, ``coverage_points`` the model
+    surface points the coverage check poses, ``verify_top`` the poses (best by the surface
+    check) that get the full score in :meth:`rank`.
+    """
+
+    library: Library
+    _: KW_ONLY
+    distance: float
+    coverage_points: int
+    verify_top: int
+    _checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = field(
+        default_factory=dict, init=False, repr=False
+    )
+    _top_offsets: dict[str, np.ndarray] = field(default_factory=dict, init=False, repr=False)
+
+    def query_checks(
+        self, keypoints: np.ndarray, probes: np.ndarray, turn: np.ndarray | None
+    ) -> QueryChecks:
+        """The query's side of the checks: ``probes`` are rows of its ``keypoints``; ``turn``
+        is the levelling turn when ``up`` is known (its second row is ``up``)."""
+        return QueryChecks(
+            probes=keypoints[probes],
+            coverage=CoverageCheck(keypoints, margin=self.distance),
+            layout=None if turn is None else LayoutCheck(keypoints, turn[1]),
+        )
+
+    def rank(self, hypotheses: list[Hypothesis], query: QueryChecks) -> list[Scored]:
+        """The ``verify_top`` poses that explain most of the query, fully scored, best first."""
+        explained = self.explained(hypotheses, query.probes)
+        best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
+        scored = [
+            Scored(hypotheses[i], self._score(hypotheses[i], explained[i], query))
+            for i in best_first
+        ]
+        scored.sort(key=lambda item: -item.score)
+        return scored
+
+    def score(self, hypothesis: Hypothesis, query: QueryChecks) -> Scored:
+        """One pose, fully scored."""
+        explained = self.explained([hypothesis], query.probes)[0]
+        return Scored(hypothesis, self._score(hypothesis, explained, query))
+
+    def explained(self, hypotheses: list[Hypothesis], probes: np.ndarray) -> np.ndarray:
+        """The share of the query each pose lays onto its model (:class:`SurfaceCheck`), one
+        surface query per model."""
+        explained = np.zeros(len(hypotheses))
+        by_model: dict[str, list[int]] = {}
+        for i, hypothesis in enumerate(hypotheses):
+            by_model.setdefault(hypothesis.model_id, []).append(i)
+        for model_id, rows in by_model.items():
+            surface, _ = self._checks_of(model_id)
+            poses = np.stack([hypotheses[i].transform for i in rows])
+            explained[rows] = surface.explained(probes, poses, self.distance)
+        return explained
+
+    def _score(self, hypothesis: Hypothesis, explained: float, query: QueryChecks) -> float:
+        """A pose's explained share (from :meth:`explained`) times its covered share, nudged by
+        the layout check."""
+        _, sample = self._checks_of(hypothesis.model_id)
+        pose = hypothesis.transform[None]
+        covered = float(query.coverage.covered(sample, pose, self.distance)[0])
+        return float(explained * covered * self._leaning(hypothesis, query.layout))
+
+    def _leaning(self, hypothesis: Hypothesis, layout: LayoutCheck | None) -> float:
+        """:class:`LayoutCheck`'s factor for the pose (1 without ``up``)."""
+        if layout is None:
+            return 1.0
+        model_id = hypothesis.model_id
+        if model_id not in self._top_offsets:
+            points = self.library[model_id].points.astype(np.float64)
+            self._top_offsets[model_id] = top_offset(points, MODEL_UP)
+        return float(layout.factor(self._top_offsets[model_id], hypothesis.transform[None])[0])
+
+    def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
+        """The model's surface check and its sample for the coverage check (cached)."""
+        if model_id not in self._checks:
+            points = self.library[model_id].points
+            self._checks[model_id] = (
+                SurfaceCheck(points),
+                surface_sample(points, self.coverage_points),
+            )
+        return self._checks[model_id]
+
+
+def best_per_model(model_ids: list[str], scored: list[Scored]) -> list[Candidate]:
+    """Each of ``model_ids`` once, with its best score among ``scored`` (0 when none of its
+    poses is there), best first: the candidates of the answer."""
+    best = dict.fromkeys(model_ids, 0.0)
+    for item in scored:
+        model_id = item.hypothesis.model_id
+        best[model_id] = max(item.score, best[model_id])
+    return sorted((Candidate(i, s) for i, s in best.items()), key=lambda c: -c.score)

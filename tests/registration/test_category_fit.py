@@ -1,0 +1,96 @@
+"""The category fit: another instance's frame placed on the observed chair's, pose rigid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from catalign.geometry.sampling import voxel_downsample
+from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
+from catalign.registration.alignment import point_cloud
+from catalign.registration.category_fit import CategoryFitter, supported
+from catalign.registration.describe import QueryView
+from catalign.registration.gravity import leveller
+from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.refine import Refiner
+
+Z_UP = np.array([0.0, 0.0, 1.0])
+TURN = leveller(Z_UP)
+# model +Y onto world +Z, turned about it, moved
+POSE = make_pose(axis_angle(Z_UP, 0.6) @ TURN.T, np.array([0.3, -0.2, 0.0]))
+
+
+@pytest.fixture
+def fitter(box_chair, make_entry, make_library) -> CategoryFitter:
+    library = make_library(make_entry("chair", box_chair.points))
+    refiner = Refiner(library, distance=0.03, normal_radius=0.06)
+    return CategoryFitter(library, refiner, support_radius=0.06, extent_points=1_500)
+
+
+def _hypothesis(pose: np.ndarray, keypoints: np.ndarray) -> Hypothesis:
+    view = QueryView(keypoints, np.zeros((len(keypoints), 4), dtype=np.float32))
+    return Hypothesis("chair", pose, np.zeros((0, 2), dtype=np.int64), view)
+
+
+def _observe(points: np.ndarray) -> np.ndarray:
+    keypoints, _ = voxel_downsample(transform(points, POSE), 0.03)
+    return keypoints
+
+
+def _centre_error(fitter: CategoryFitter, pose: np.ndarray, observed_centre: np.ndarray) -> float:
+    centre = fitter.library["chair"].centre
+    return float(np.linalg.norm(transform(centre[None], pose)[0] - observed_centre))
+
+
+def test_isolated_points_do_not_count_unless_most_are() -> None:
+    grid = np.stack(np.meshgrid(*[np.arange(5) * 0.01] * 3), axis=-1).reshape(-1, 3)
+    strays = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+    assert np.array_equal(supported(np.concatenate([grid, strays]), 0.015), grid)
+    assert np.array_equal(supported(strays, 0.015), strays)
+
+
+def test_a_larger_chair_gets_the_model_centre_on_its_own(fitter, box_chair) -> None:
+    """15% larger than the model: the rigid fit hugs one side; the category fit puts the
+    model's centre on the observed chair's, the pose upright and rigid."""
+    centre = fitter.library["chair"].centre
+    larger = (box_chair.points - centre) * 1.15 + centre
+    keypoints = _observe(larger)
+    query = point_cloud(keypoints)
+    hugging = make_pose(np.eye(3), np.array([0.04, 0.0, 0.03])) @ POSE
+    hugging = fitter.refiner.refine(_hypothesis(hugging, keypoints), query)
+    observed_centre = transform(centre[None], POSE)[0]
+    assert _centre_error(fitter, hugging.transform, observed_centre) > 0.015
+    fitted = fitter.fit(hugging, query, keypoints, TURN)
+    assert _centre_error(fitter, fitted.transform, observed_centre) < 0.01
+    assert rotation_error_deg(fitted.transform[:3, :3], POSE[:3, :3]) < 2.0
+    assert np.linalg.det(fitted.transform[:3, :3]) == pytest.approx(1.0)
+
+
+def test_the_same_size_needs_no_refit(fitter, box_chair) -> None:
+    keypoints = _observe(box_chair.points)
+    hypothesis = _hypothesis(POSE, keypoints)
+    height = float(np.ptp(keypoints @ TURN[1]))
+    assert fitter.fit_at_observed_size(hypothesis, point_cloud(keypoints), height) is hypothesis
+
+
+def test_a_tilted_pose_is_stood_upright_about_the_model_centre(fitter, box_chair) -> None:
+    tilted = make_pose(axis_angle(np.array([1.0, 0, 0]), np.radians(6.0)), np.zeros(3)) @ POSE
+    upright = fitter.stand_upright(_hypothesis(tilted, _observe(box_chair.points)), TURN)
+    assert np.allclose(upright.transform[:3, :3] @ np.array([0, 1.0, 0]), Z_UP)
+    centre = fitter.library["chair"].centre
+    assert np.allclose(transform(centre[None], upright.transform), transform(centre[None], tilted))
+
+
+def test_only_axes_the_view_spans_whole_are_centred(fitter, box_chair) -> None:
+    """A chair 25% wider (model x) seen whole: the pose moves along x to share the middle. Cut
+    to its front half (model z): z is kept where the fit put it."""
+    centre = fitter.library["chair"].centre
+    wider = (box_chair.points - centre) * np.array([1.25, 1.0, 1.0]) + centre
+    front = wider[wider[:, 2] < centre[2]]
+    off = make_pose(np.eye(3), POSE[:3, :3] @ np.array([0.03, 0.0, 0.03])) @ POSE
+    shifted = fitter.centre_on_extent(_hypothesis(off, _observe(front)), _observe(front))
+    # in model coordinates: x back to the middle, z left as it was
+    moved = POSE[:3, :3].T @ (shifted.transform[:3, 3] - off[:3, 3])
+    assert moved[0] == pytest.approx(-0.03, abs=0.01)
+    assert moved[2] == pytest.approx(0.0, abs=1e-12)
+    assert np.array_equal(shifted.transform[:3, :3], off[:3, :3])

@@ -1,0 +1,90 @@
+"""The engine's one configuration: the measured defaults, loud refusals, no heavy imports."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from pydantic import ValidationError
+
+from catalign.registration.config import EngineConfig, from_config
+
+# The engine's defaults as measured (bench/tradeoff.py); a change here is a change of behaviour.
+DEFAULTS = {
+    "headings": None,
+    "top_k": 10,
+    "ransac_factor": 2.0,
+    "icp_factor": 1.0,
+    "up_tolerance_deg": 30.0,
+    "min_points": 50,
+    "keep_headings": 3,
+    "heading_models": 10,
+    "heading_draws": 300,
+    "ransac_iterations": 5_000,
+    "pair_draws": 3_000,
+    "poses_per_view": 8,
+    "probe_points": 384,
+    "coverage_points": 1_500,
+    "match_points": 500,
+    "model_points": 1_000,
+    "verify_top": 32,
+    "refine": 3,
+    "exact_fitness": 0.9,
+    "fine_cells": 4,
+    "pass_voxels": 32_000,
+}
+
+
+def test_defaults_are_the_measured_ones() -> None:
+    assert EngineConfig().model_dump() == DEFAULTS
+
+
+def test_every_field_is_documented() -> None:
+    for name, field in EngineConfig.model_fields.items():
+        assert field.description, f"EngineConfig.{name} has no docstring"
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"keep_heading": 2},  # a typo
+        {"top_k": 0},
+        {"match_points": -1},
+        {"ransac_factor": 0.0},
+        {"exact_fitness": 1.5},
+        {"refine": "three"},
+    ],
+)
+def test_unknown_fields_and_bad_values_are_refused(bad: dict) -> None:
+    with pytest.raises(ValidationError):
+        EngineConfig.model_validate(bad)
+
+
+def test_none_means_all_and_the_config_is_frozen() -> None:
+    config = EngineConfig.model_validate({"model_points": None, "top_k": None})
+    assert (config.model_points, config.top_k) == (None, None)
+    with pytest.raises(ValidationError):
+        config.top_k = 3  # type: ignore[misc]
+
+
+def test_importing_it_pulls_in_neither_torch_nor_open3d() -> None:
+    code = (
+        "import sys; import catalign.registration.config, catalign.api.settings; "
+        "heavy = {'torch', 'open3d'} & set(sys.modules); assert not heavy, heavy"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_from_config_fills_a_stages_options_by_name() -> None:
+    def stage(library: str, *, distance: float, top_k: int | None, refine: int) -> tuple:
+        return library, distance, top_k, refine
+
+    config = EngineConfig(top_k=4)
+    assert from_config(stage, config, "lib", distance=0.05) == ("lib", 0.05, 4, 3)
+    assert from_config(stage, config, "lib", distance=0.05, refine=1) == ("lib", 0.05, 4, 1)
+
+    def unknown(*, distance: float, surprise: int) -> None: ...
+
+    with pytest.raises(AttributeError, match="surprise"):
+        from_config(unknown, config, distance=0.05)
