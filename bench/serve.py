@@ -2,28 +2,41 @@
 
 Starts the real server as a subprocess (``catalign serve``: shipped weights ``model_store/``,
 default library ``model_store/library``, 2 worker threads, a queue deep enough for every request
-in flight) on free 127.0.0.1 ports for HTTP and gRPC, so client and server do not share a GIL.
-One 20k-point partial view of a procedural chair that is in no library is registered with a
-fixed ``top_k`` and ``seed`` (every request does the same work) at concurrency 1, 4 and 16
-through three transports: ``catalign_client.Client.align(encoding="binary")`` (float32 body),
-``encoding="json"``, and the grpcio ``Catalign/Register`` stub (packed float32). Per concurrency
-level the transports run interleaved, in ``--rounds`` rounds with a rotating order, so a change
-in the machine's load hits all of them alike.
+in flight, a per-request deadline as long as the client's timeout so that no request is cut off)
+on free 127.0.0.1 ports for HTTP and gRPC, so client and server do not share a GIL. One 20k-point
+partial view of a procedural chair that is in no library is registered with a fixed ``top_k``
+and ``seed`` (every request does the same work) at concurrency 1, 2, 4 and 16 (below, at and
+above the 2 workers) through three transports: ``catalign_client.Client.align(encoding="binary")``
+(float32 body), ``encoding="json"``, and the grpcio ``Catalign/Register`` stub (packed float32).
+Per concurrency level the transports run interleaved, in ``--rounds`` rounds with a rotating
+order, so a change in the machine's load hits all of them alike.
+
+The whole run is repeated, one server at a time in the given order, for each value of
+``--threads-per-worker`` (``CATALIGN_THREADS_PER_WORKER``: the torch, BLAS/OpenMP and Open3D
+threads of each worker). The default ``1 2`` compares the even share of a 2-core machine with 2
+workers (1 thread each, the server's default there) against 2 threads per worker, which
+oversubscribes the cores as every server did before the numeric libraries were limited per
+worker. With the fix, throughput should rise up to the core count and then stay flat; the ratio
+of the sdk-binary req/s of the first value to the second is printed below the table.
 
 Latency is measured per request from before encoding to the parsed answer. The engine's own time
 is the ``timings_ms['total']`` the server returns (from submission to its worker pool to the
 result, so at concurrency > 1 it includes waiting for a worker); the reference "engine median"
-is its median over the concurrency-1 requests of every transport. Two overheads are reported:
-the median of (end-to-end - server total) per request, which is the transport's own cost
-(encoding, loopback, decoding, the HTTP or gRPC stack) at any concurrency, and end-to-end median
-minus engine median, which at concurrency 1 is the same thing seen from outside and at higher
-concurrency mostly queueing. A few direct ``Engine.register`` calls in this process (1 torch
-thread, like one server worker) give the engine's time with no server at all.
+of each server is its median over the concurrency-1 requests of every transport. Two overheads
+are reported: the median of (end-to-end - server total) per request, which is the transport's own
+cost (encoding, loopback, decoding, the HTTP or gRPC stack) at any concurrency, and end-to-end
+median minus engine median, which at concurrency 1 is the same thing seen from outside and at
+higher concurrency mostly queueing. A few direct ``Engine.register`` calls in this process (with
+the threads of one server worker, for each value) give the engine's time with no server at all.
+For each server run the table's notes give the load average at its start and the share of the
+machine's CPU time that other processes used while it was measured (``/proc/stat`` minus this
+process and the server): the timings mean something only when that share is near 0.
 
 Prints a markdown table and writes it to ``bench/results/serve.md``.
 
-    .venv/bin/python bench/serve.py [--concurrency 1 4 16] [--requests 8 16 32]
-        [--requests-scale 1.0] [--top-k 5] [--seed 0] [--rounds 2] [--engine-runs 3]
+    .venv/bin/python bench/serve.py [--concurrency 1 2 4 16] [--requests 8 12 16 32]
+        [--threads-per-worker 1 2] [--requests-scale 1.0] [--top-k 5] [--seed 0]
+        [--points 20000] [--workers 2] [--rounds 2] [--engine-runs 3]
 """
 
 from __future__ import annotations
@@ -63,12 +76,15 @@ UP = (0.0, 0.0, 1.0)
 TRANSPORTS = ("sdk-binary", "sdk-json", "grpc")
 START_TIMEOUT_S = 300.0
 REQUEST_TIMEOUT_S = 600.0
+KEEPALIVE_S = 2.0  # client-side expiry of idle HTTP connections, under uvicorn's 5 s
 
 
 @dataclass(frozen=True)
 class Sample:
-    """One request: which transport, at what concurrency, how long, and the server's own time."""
+    """One request: which server (threads per worker), which transport, at what concurrency, how
+    long, and the server's own time."""
 
+    threads: int
     transport: str
     concurrency: int
     e2e_ms: float
@@ -95,7 +111,7 @@ def free_port() -> int:
 class ServerProcess:
     """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file."""
 
-    def __init__(self, workers: int, queue: int) -> None:
+    def __init__(self, workers: int, queue: int, threads_per_worker: int) -> None:
         self.port = free_port()
         self.grpc_port = free_port()
         while self.grpc_port == self.port:
@@ -104,10 +120,13 @@ class ServerProcess:
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
         self.workers = workers
         self.queue = queue
+        self.threads_per_worker = threads_per_worker
         self._log = tempfile.NamedTemporaryFile(prefix="catalign-serve-", suffix=".log")  # noqa: SIM115
         exe = shutil.which("catalign", path=str(Path(sys.executable).parent)) or "catalign"
         env = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-        env["CATALIGN_TORCH_THREADS"] = "1"
+        env["CATALIGN_THREADS_PER_WORKER"] = str(threads_per_worker)
+        # Every request must finish: a deadline would turn slow (oversubscribed) runs into 503s.
+        env["CATALIGN_DEADLINE_S"] = str(REQUEST_TIMEOUT_S)
         env["CATALIGN_LOG_LEVEL"] = "warning"  # no line per request in the timed loop
         flags = {
             "--model-dir": MODEL_DIR,
@@ -141,6 +160,10 @@ class ServerProcess:
             time.sleep(0.25)
         raise RuntimeError(f"catalign serve not ready after {START_TIMEOUT_S:.0f} s:\n{self.log()}")
 
+    @property
+    def pid(self) -> int:
+        return self._process.pid
+
     def log(self) -> str:
         return Path(self._log.name).read_text(errors="replace")[-4000:]
 
@@ -162,7 +185,16 @@ class Transports:
         self.points = points
         self.top_k = top_k
         self.seed = seed
-        self.http = Client(server.url, timeout=REQUEST_TIMEOUT_S, retries=0)
+        # Idle connections are dropped by the client before uvicorn's 5 s keep-alive closes them:
+        # else a connection idle for about 5 s (while another transport runs) can be reused just
+        # as the server closes it ("Server disconnected without sending a response").
+        keepalive = httpx.Limits(keepalive_expiry=KEEPALIVE_S)
+        self.http = Client(
+            server.url,
+            timeout=REQUEST_TIMEOUT_S,
+            retries=0,
+            transport=httpx.HTTPTransport(limits=keepalive),
+        )
         self.channel = grpc.insecure_channel(
             server.grpc_target,
             options=[
@@ -200,7 +232,9 @@ class Transports:
         self.channel.close()
 
 
-def run_batch(call: Callable[[], tuple[float, float]], count: int, concurrency: int):
+def run_batch(
+    call: Callable[[], tuple[float, float]], count: int, concurrency: int
+) -> tuple[list[tuple[float, float, float]], float]:
     """``count`` requests with ``concurrency`` in flight; per-request (e2e, total, queue), wall."""
     lock = threading.Lock()
     out: list[tuple[float, float, float]] = []
@@ -218,41 +252,99 @@ def run_batch(call: Callable[[], tuple[float, float]], count: int, concurrency: 
     return out, time.perf_counter() - started
 
 
-def engine_direct(points: np.ndarray, top_k: int, seed: int, runs: int) -> list[float]:
-    """Engine.register in this process with 1 torch thread (one server worker), no server."""
+def engine_direct(
+    points: np.ndarray, top_k: int, seed: int, runs: int, threads: list[int]
+) -> dict[int, list[float]]:
+    """Engine.register in this process, no server, with the numeric threads of one server worker
+    (torch, BLAS/OpenMP and Open3D limited to ``t``) for each ``t`` in ``threads``: run times."""
     if runs <= 0:
-        return []
-    import torch
-
+        return {}
     from catalign.features.extractor import LearnedExtractor
     from catalign.library.index import load
+    from catalign.registration.config import EngineConfig
     from catalign.registration.engine import Engine
+    from catalign.threads import limit_threads
 
-    torch.set_num_threads(1)
-    extractor = LearnedExtractor(MODEL_DIR, threads=1)
+    extractor = LearnedExtractor(MODEL_DIR)
     engine = Engine(
-        extractor, load(LIBRARY, extractor.fingerprint), headings=extractor.headings, top_k=top_k
+        extractor, load(LIBRARY, extractor.fingerprint), config=EngineConfig(top_k=top_k)
     )
     up = np.asarray(UP)
     cloud = points.astype(np.float64)
-    engine.register(cloud, top_k=top_k, up=up, seed=seed)  # warm-up
-    out = []
-    for _ in range(runs):
-        started = time.perf_counter()
-        engine.register(cloud, top_k=top_k, up=up, seed=seed)
-        out.append((time.perf_counter() - started) * 1e3)
+    out: dict[int, list[float]] = {}
+    for t in threads:
+        limit_threads(t, total=t)  # as a worker's initializer does; one worker here
+        engine.register(cloud, top_k=top_k, up=up, seed=seed)  # warm-up
+        out[t] = []
+        for _ in range(runs):
+            started = time.perf_counter()
+            engine.register(cloud, top_k=top_k, up=up, seed=seed)
+            out[t].append((time.perf_counter() - started) * 1e3)
     return out
+
+
+def serve_run(
+    threads: int,
+    args: argparse.Namespace,
+    counts: list[int],
+    queue: int,
+    points: np.ndarray,
+    walls: dict[tuple[int, str, int], float],
+) -> tuple[list[Sample], float, float]:
+    """Every concurrency level, transports interleaved, on one server with ``threads`` numeric
+    threads per worker: the samples (wall times added to ``walls``), the server's start-up time
+    and the share of the machine's CPU time that other processes used while it was measured."""
+    server = ServerProcess(args.workers, queue, threads)
+    samples: list[Sample] = []
+    try:
+        ready_s = server.wait_ready()
+        cpu_before = _cpu_seconds(server.pid)
+        transports = Transports(server, points, args.top_k, args.seed)
+        try:
+            for name in TRANSPORTS:  # warm-up: connections, lazy imports, first-call paths
+                transports.calls[name]()
+            for concurrency, count in zip(args.concurrency, counts, strict=True):
+                chunks = _split(count, args.rounds)
+                for r, chunk in enumerate(chunks):
+                    order = TRANSPORTS[r % 3 :] + TRANSPORTS[: r % 3]
+                    for name in order:
+                        results, wall = run_batch(transports.calls[name], chunk, concurrency)
+                        key = (threads, name, concurrency)
+                        walls[key] = walls.get(key, 0.0) + wall
+                        samples += [Sample(threads, name, concurrency, *row) for row in results]
+                        print(
+                            f"threads/worker={threads} c={concurrency:<3} {name:<10} "
+                            f"round {r + 1}: {chunk} requests in {wall:.1f} s",
+                            file=sys.stderr,
+                        )
+        finally:
+            transports.close()
+        foreign = _foreign_share(cpu_before, _cpu_seconds(server.pid))
+    except Exception:
+        print(f"catalign serve log (tail):\n{server.log()}", file=sys.stderr)
+        raise
+    finally:
+        server.stop()
+    return samples, ready_s, foreign
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--concurrency", type=int, nargs="+", default=[1, 4, 16])
+    parser.add_argument("--concurrency", type=int, nargs="+", default=[1, 2, 4, 16])
     parser.add_argument(
         "--requests",
         type=int,
         nargs="+",
-        default=[8, 16, 32],
+        default=[8, 12, 16, 32],
         help="Timed requests per transport at each concurrency level (same order).",
+    )
+    parser.add_argument(
+        "--threads-per-worker",
+        type=int,
+        nargs="+",
+        default=[1, 2],
+        help="CATALIGN_THREADS_PER_WORKER of each server run, one server after another; the "
+        "sdk-binary req/s of the first is compared with the second.",
     )
     parser.add_argument("--requests-scale", type=float, default=1.0)
     parser.add_argument("--top-k", type=int, default=5)
@@ -260,11 +352,18 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=20_000)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=2, help="Interleaving rounds per level.")
-    parser.add_argument("--engine-runs", type=int, default=3, help="Direct engine runs (0: none).")
+    parser.add_argument(
+        "--engine-runs", type=int, default=3, help="Direct engine runs per thread count (0: none)."
+    )
     args = parser.parse_args()
     if len(args.requests) != len(args.concurrency):
         parser.error("--requests needs one count per --concurrency level")
+    if len(set(args.threads_per_worker)) != len(args.threads_per_worker):
+        parser.error("--threads-per-worker values must differ")
+    if min(args.threads_per_worker) < 1:
+        parser.error("--threads-per-worker values must be at least 1")
     counts = [max(args.rounds, round(n * args.requests_scale)) for n in args.requests]
+    thread_counts: list[int] = args.threads_per_worker
 
     points = query_cloud(count=args.points)
     binary_bytes = points.size * 4
@@ -276,83 +375,122 @@ def main() -> None:
     load_before = f"{load_average():.2f}"
     wall_started = time.perf_counter()
 
-    direct = engine_direct(points, args.top_k, args.seed, args.engine_runs)
+    direct = engine_direct(points, args.top_k, args.seed, args.engine_runs, thread_counts)
     queue = max(64, 2 * max(args.concurrency))
-    server = ServerProcess(args.workers, queue)
     samples: list[Sample] = []
-    walls: dict[tuple[str, int], float] = {}
-    try:
-        ready_s = server.wait_ready()
-        transports = Transports(server, points, args.top_k, args.seed)
-        try:
-            for name in TRANSPORTS:  # warm-up: connections, lazy imports, first-call paths
-                transports.calls[name]()
-            for concurrency, count in zip(args.concurrency, counts, strict=True):
-                chunks = _split(count, args.rounds)
-                for r, chunk in enumerate(chunks):
-                    order = TRANSPORTS[r % 3 :] + TRANSPORTS[: r % 3]
-                    for name in order:
-                        results, wall = run_batch(transports.calls[name], chunk, concurrency)
-                        walls[name, concurrency] = walls.get((name, concurrency), 0.0) + wall
-                        samples += [Sample(name, concurrency, *row) for row in results]
-                        print(
-                            f"c={concurrency:<3} {name:<10} round {r + 1}: {chunk} requests "
-                            f"in {wall:.1f} s",
-                            file=sys.stderr,
-                        )
-        finally:
-            transports.close()
-    finally:
-        server.stop()
+    walls: dict[tuple[int, str, int], float] = {}
+    ready_s: dict[int, float] = {}
+    load_at_start: dict[int, float] = {}
+    foreign: dict[int, float] = {}
+    for threads in thread_counts:  # one server at a time, in the given order
+        load_at_start[threads] = load_average()
+        run_samples, ready_s[threads], foreign[threads] = serve_run(
+            threads, args, counts, queue, points, walls
+        )
+        samples += run_samples
     elapsed = time.perf_counter() - wall_started
 
-    engine_ms = float(np.median([s.total_ms for s in samples if s.concurrency == 1]))
+    engine_ms = {
+        t: float(np.median([s.total_ms for s in samples if s.threads == t and s.concurrency == 1]))
+        if 1 in args.concurrency
+        else float("nan")
+        for t in thread_counts
+    }
     lines = [
         "# Served latency and throughput (20k-point query, loopback)",
         "",
         f"{platform.machine()} {_cpu_model()}, {os.cpu_count()} CPUs; server: `catalign serve`, "
-        f"{args.workers} workers x 1 torch thread, queue {queue}, {len(_library_ids())} library "
-        f"models; query {len(points)} points (binary {binary_bytes / 1024:.0f} KiB, JSON "
-        f"{json_bytes / 1024:.0f} KiB; client-side encoding alone: binary "
-        f"{encode_ms['binary']:.1f} ms, JSON {encode_ms['JSON']:.0f} ms), "
-        f"top_k={args.top_k}, seed={args.seed}, up=+Z; "
-        f"{args.rounds} interleaved rounds per level; load average {load_before} before, "
-        f"{load_average():.2f} after; {elapsed / 60:.1f} min in all "
-        f"(server ready in {ready_s:.0f} s).",
+        f"{args.workers} workers x {' or '.join(map(str, thread_counts))} threads "
+        f"(`CATALIGN_THREADS_PER_WORKER`: torch, BLAS/OpenMP, Open3D), one server after another "
+        f"in that order, queue {queue}, deadline {REQUEST_TIMEOUT_S:.0f} s, "
+        f"{len(_library_ids())} library models; query {len(points)} points (binary "
+        f"{binary_bytes / 1024:.0f} KiB, JSON {json_bytes / 1024:.0f} KiB; client-side encoding "
+        f"alone: binary {encode_ms['binary']:.1f} ms, JSON {encode_ms['JSON']:.0f} ms), "
+        f"top_k={args.top_k}, seed={args.seed}, up=+Z; {args.rounds} interleaved rounds per "
+        f"level; requests scale {args.requests_scale:g}; load average {load_before} before, "
+        f"{load_average():.2f} after; {elapsed / 60:.1f} min in all.",
         "",
-        f"Engine median (server `timings_ms.total`, concurrency 1, all transports): "
-        f"**{engine_ms:.0f} ms**"
-        + (
-            f"; direct `Engine.register` in-process, no server: median {np.median(direct):.0f} "
-            f"ms over {len(direct)} runs."
-            if direct
-            else "."
-        ),
-        "",
-        "| transport | concurrency | requests | median ms | p95 ms | req/s | server total "
-        "median ms | overhead/request median ms | median - engine ms |",
-        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for concurrency in args.concurrency:
-        for name in TRANSPORTS:
-            cell = [s for s in samples if s.transport == name and s.concurrency == concurrency]
-            e2e = np.array([s.e2e_ms for s in cell])
-            total = np.array([s.total_ms for s in cell])
-            lines.append(
-                f"| {name} | {concurrency} | {len(cell)} | {np.median(e2e):.0f} | "
-                f"{np.percentile(e2e, 95):.0f} | {len(cell) / walls[name, concurrency]:.2f} | "
-                f"{np.median(total):.0f} | {np.median(e2e - total):.1f} | "
-                f"{np.median(e2e) - engine_ms:+.0f} |"
+    for t in thread_counts:
+        lines.append(
+            f"- {t} thread(s)/worker: engine median (server `timings_ms.total`, concurrency 1, "
+            f"all transports) **{engine_ms[t]:.0f} ms**"
+            + (
+                f"; direct `Engine.register` in-process, no server: median "
+                f"{np.median(direct[t]):.0f} ms over {len(direct[t])} runs"
+                if direct.get(t)
+                else ""
             )
+            + f"; server ready in {ready_s[t]:.0f} s; load average {load_at_start[t]:.2f} at its "
+            f"start; other processes used {foreign[t]:.0%} of the machine's CPU time during its "
+            "run."
+        )
+    lines += [
+        "",
+        "| threads/worker | transport | concurrency | requests | median ms | p95 ms | req/s | "
+        "server total median ms | overhead/request median ms | median - engine ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    rates: dict[tuple[int, str, int], float] = {}
+    for t in thread_counts:
+        for concurrency in args.concurrency:
+            for name in TRANSPORTS:
+                cell = [
+                    s
+                    for s in samples
+                    if s.threads == t and s.transport == name and s.concurrency == concurrency
+                ]
+                e2e = np.array([s.e2e_ms for s in cell])
+                total = np.array([s.total_ms for s in cell])
+                rates[t, name, concurrency] = len(cell) / walls[t, name, concurrency]
+                lines.append(
+                    f"| {t} | {name} | {concurrency} | {len(cell)} | {np.median(e2e):.0f} | "
+                    f"{np.percentile(e2e, 95):.0f} | "
+                    f"{rates[t, name, concurrency]:.2f} | {np.median(total):.0f} | "
+                    f"{np.median(e2e - total):.1f} | {np.median(e2e) - engine_ms[t]:+.0f} |"
+                )
     lines += [
         "",
         "overhead/request = end-to-end minus the server's `timings_ms.total` of the same request "
         "(client encoding, loopback, server decoding, HTTP/gRPC stack, answer parsing); "
-        "median - engine = end-to-end median minus the engine median above (includes queueing "
-        "at concurrency > 1). Target: binary adds at most 10 ms to the engine's own time.",
+        "median - engine = end-to-end median minus the engine median of the same server above "
+        "(includes queueing at concurrency > 1). Target: binary adds at most 10 ms to the "
+        "engine's own time.",
     ]
+    if len(thread_counts) >= 2:
+        first, second = thread_counts[:2]
+        ratios = ", ".join(
+            f"c={c}: **{rates[first, 'sdk-binary', c] / rates[second, 'sdk-binary', c]:.2f}x**"
+            for c in args.concurrency
+        )
+        lines += [
+            "",
+            f"sdk-binary req/s, {first} thread(s)/worker over {second} thread(s)/worker: {ratios}.",
+        ]
     table = "\n".join(lines) + "\n"
     publish(table, RESULTS)
+
+
+def _cpu_seconds(server_pid: int) -> tuple[float, float, float]:
+    """CPU seconds so far: busy and in all (every core, from ``/proc/stat``), and used by this
+    process plus the server (client and server together); NaN where ``/proc`` is missing."""
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
+        user, nice, system, idle, iowait, irq, softirq, steal = fields
+        stat = Path(f"/proc/{server_pid}/stat").read_text().rsplit(")", 1)[1].split()
+        server = (int(stat[11]) + int(stat[12])) / tick  # utime, stime (fields 14 and 15)
+    except (OSError, ValueError, IndexError):
+        return float("nan"), float("nan"), float("nan")
+    busy = (user + nice + system + irq + softirq + steal) / tick
+    return busy, busy + (idle + iowait) / tick, time.process_time() + server
+
+
+def _foreign_share(before: tuple[float, float, float], after: tuple[float, float, float]) -> float:
+    """Share of the machine's CPU time between two ``_cpu_seconds`` that neither the server nor
+    this process used: other load that makes the timings unreliable (a few % is background)."""
+    busy, total, ours = (b - a for a, b in zip(before, after, strict=True))
+    return max(0.0, busy - ours) / total if total > 0 else float("nan")
 
 
 def _median_ms(call: Callable[[], object], runs: int = 5) -> float:
