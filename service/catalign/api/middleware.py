@@ -5,9 +5,10 @@ The request id comes from a well-formed ``X-Request-ID`` header or is generated;
 in ``request.state.request_id``, echoed in the response header and logged. Bodies over the limit
 are refused from ``Content-Length`` before they are read, and while they are read otherwise
 (chunked uploads). ``refuse_early`` may refuse a request from its method and path alone (a full
-worker queue): answered here, before routing, a refusal costs a flood of clients little. An
-exception no handler took is a bug: logged with its traceback and the request id, answered 500
-``internal`` without details.
+worker queue): answered here, before routing and after a short pause (:data:`REFUSAL_PAUSE_S`),
+a refusal costs the event loop little, and clients that retry at once cannot make it answer
+thousands a second while health checks wait behind them. An exception no handler took is a
+bug: logged with its traceback and the request id, answered 500 ``internal`` without details.
 """
 
 from __future__ import annotations
@@ -28,6 +29,11 @@ logger = logging.getLogger("catalign.api.access")
 
 REQUEST_ID_HEADER = "x-request-id"
 _REQUEST_ID = re.compile(r"[A-Za-z0-9._:-]{1,128}")
+# How long a refused registration waits for its 503. Measured with 64 clients retrying at once
+# (loopback, 2 cores): /health/live p50 21-38 ms without a pause, 1.9 ms with 0.1 s, and two to
+# eight times the accepted registrations; 0.25 s leaves margin. A client told to retry later
+# loses nothing by the wait.
+REFUSAL_PAUSE_S = 0.25
 
 
 def new_request_id() -> str:
@@ -91,7 +97,9 @@ class RequestContextMiddleware:
         try:
             declared = _content_length(headers)
             refusal = self.refuse_early(scope["method"], scope["path"])
-            if refusal is None and declared is not None and declared > self.max_body_bytes:
+            if refusal is not None:
+                await asyncio.sleep(REFUSAL_PAUSE_S)
+            elif declared is not None and declared > self.max_body_bytes:
                 refusal = self._too_large(declared)
             if refusal is not None:
                 await error_response(refusal, request_id)(scope, receive, send_with_id)
