@@ -3,7 +3,7 @@
 # with torch first), run as root at build time; the server runs as an unprivileged user.
 #
 #   docker build -t catalign .
-#   docker run -p 8000:8000 -p 50051:50051 -e CATALIGN_API_KEY=... catalign
+#   docker run -p 8000:8000 -p 50051:50051 -e CATALIGN_API_KEY_FILE=/run/secrets/key -v ...:/run/secrets/key:ro catalign
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
