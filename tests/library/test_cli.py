@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
+from catalign.library.store import FORMAT_VERSION
 
 runner = CliRunner()
 
@@ -30,7 +31,7 @@ def test_build_list_info_add_remove(tmp_path: Path) -> None:
     assert listed.output.split() == ["alpha", "beta"]
 
     info = runner.invoke(app, ["library", "info", str(library)])
-    assert "models: 2" in info.output and "format: 1" in info.output
+    assert "models: 2" in info.output and f"format: {FORMAT_VERSION}" in info.output
 
     removed = runner.invoke(app, ["library", "remove", str(library), "alpha"])
     assert removed.exit_code == 0 and "1 models" in removed.output

@@ -76,7 +76,7 @@ def test_build_from_a_folder_of_mixed_formats(mixed_folder, tmp_path, extractor)
     assert manifest.ids == sorted(meshes | clouds)
 
     on_disk = json.loads((out / "manifest.json").read_text())
-    assert on_disk["format_version"] == 1
+    assert on_disk["format_version"] == 2
     assert on_disk["extractor"] == {"fingerprint": "fake-v1", "voxel_size": 0.05}
     assert on_disk["created"] == on_disk["updated"] and on_disk["created"].endswith("+00:00")
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.geometry.distance_grid import DistanceGrid
 from catalign.library import Library, LibraryEntry, build, global_descriptor, load, shortlist
 from catalign.library.retrieval import retrieval_scores
 from catalign.library.store import Manifest
@@ -25,6 +26,7 @@ def synthetic_library(descriptors: np.ndarray, sizes: np.ndarray) -> Library:
                 bbox_min=-size / 2,
                 bbox_max=size / 2,
                 size=size,
+                grid=DistanceGrid.around(np.zeros((1, 3)), cell=0.025, truncation=0.15),
                 source="test",
                 source_sha256="0" * 64,
                 units="m",

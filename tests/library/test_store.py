@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import hashlib
 import inspect
 import io
 import json
@@ -198,10 +199,54 @@ def _edit_manifest(library_dir, edit) -> None:
     path.write_text(json.dumps(data))
 
 
-def test_unknown_format_version(small_library, extractor):
-    _edit_manifest(small_library, lambda m: m.update(format_version=99))
-    with pytest.raises(LibraryCorruptError, match=r"format version 99.*reads version 1.*build"):
+@pytest.mark.parametrize("version", [99, 1])
+def test_unknown_format_version(small_library, extractor, version):
+    """Version 1 (entries without distance grids) is refused like any other, with the
+    command that rebuilds it."""
+    _edit_manifest(small_library, lambda m: m.update(format_version=version))
+    expected = rf"format version {version}.*reads version 2.*library build .* --overwrite"
+    with pytest.raises(LibraryCorruptError, match=expected):
         load(small_library, extractor.fingerprint)
+
+
+def test_an_entry_round_trips_with_its_distance_grid(small_library, files, extractor):
+    fresh = describe_file(SourceFile("a", files.cloud("a.npy", 1)), extractor)
+    loaded = load(small_library, extractor.fingerprint)["a"].grid
+    assert loaded.values.dtype == np.uint8 and not loaded.values.flags.writeable
+    np.testing.assert_array_equal(loaded.values, fresh.grid.values)
+    np.testing.assert_array_equal(loaded.origin, fresh.grid.origin)
+    assert (loaded.cell, loaded.step) == (fresh.grid.cell, fresh.grid.step)
+    # half a voxel a cell, three voxels of truncation
+    assert loaded.cell == extractor.voxel_size / 2
+    assert loaded.truncation == pytest.approx(3 * extractor.voxel_size)
+    # the grid reaches the truncation past the bounding box on every side
+    assert np.all(loaded.origin <= fresh.bbox_min - loaded.truncation + 1e-12)
+    far_corner = loaded.origin + loaded.cell * (np.array(loaded.values.shape) - 1)
+    assert np.all(far_corner >= fresh.bbox_max + loaded.truncation - 1e-12)
+
+
+def test_an_entry_without_a_grid_is_corrupt(small_library, extractor):
+    record = info(small_library).entries["a"]
+    path = small_library / record.file
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files if name != "grid"}
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    _replace_entry(small_library, "a", buffer.getvalue())
+    with pytest.raises(LibraryCorruptError, match=r"'a'.*malformed.*grid"):
+        load(small_library, extractor.fingerprint)
+
+
+def _replace_entry(library_dir, model_id: str, data: bytes) -> None:
+    """Write ``data`` over an entry's file and make the manifest's checksum match it."""
+    record = info(library_dir).entries[model_id]
+    (library_dir / record.file).write_bytes(data)
+    sha256 = hashlib.sha256(data).hexdigest()
+    new_file = store.entry_file_name(model_id, sha256)
+    (library_dir / record.file).rename(library_dir / new_file)
+    _edit_manifest(
+        library_dir, lambda m: m["entries"][model_id].update(sha256=sha256, file=new_file)
+    )
 
 
 @pytest.mark.parametrize(

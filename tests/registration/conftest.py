@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, DistanceGrid
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
 from catalign.library.retrieval import global_descriptor
@@ -19,9 +20,11 @@ def entry(
     points: np.ndarray,
     keypoints: np.ndarray | None = None,
     features: np.ndarray | None = None,
+    voxel_size: float = 0.03,
 ) -> LibraryEntry:
     """A library entry from surface ``points``; key points default to the points themselves
-    and features to random unit vectors (seeded by the id's length, so fixed per id)."""
+    and features to random unit vectors (seeded by the id's length, so fixed per id); its
+    distance grid as a library of ``voxel_size`` builds it."""
     points = np.asarray(points, dtype=np.float64)
     keypoints = points if keypoints is None else keypoints
     if features is None:
@@ -37,6 +40,9 @@ def entry(
         bbox_min=low,
         bbox_max=high,
         size=high - low,
+        grid=DistanceGrid.around(
+            points, cell=CELL_VOXELS * voxel_size, truncation=TRUNCATION_VOXELS * voxel_size
+        ),
         source=f"test:{model_id}",
         source_sha256="0" * 64,
         units="m",

@@ -8,6 +8,7 @@ import sys
 import pytest
 from pydantic import ValidationError
 
+from catalign.geometry.distance_grid import TRUNCATION_VOXELS
 from catalign.registration.config import EngineConfig, from_config
 
 # The engine's defaults as measured (bench/tradeoff.py); a change here is a change of behaviour.
@@ -52,6 +53,7 @@ def test_every_field_is_documented() -> None:
         {"top_k": 0},
         {"match_points": -1},
         {"ransac_factor": 0.0},
+        {"ransac_factor": TRUNCATION_VOXELS + 0.5},  # past the library's distance grids
         {"exact_fitness": 1.5},
         {"refine": "three"},
     ],
@@ -59,6 +61,10 @@ def test_every_field_is_documented() -> None:
 def test_unknown_fields_and_bad_values_are_refused(bad: dict) -> None:
     with pytest.raises(ValidationError):
         EngineConfig.model_validate(bad)
+
+
+def test_the_verification_distance_may_reach_the_end_of_the_distance_grids() -> None:
+    assert EngineConfig(ransac_factor=TRUNCATION_VOXELS).ransac_factor == TRUNCATION_VOXELS
 
 
 def test_none_means_all_and_the_config_is_frozen() -> None:

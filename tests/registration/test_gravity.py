@@ -1,4 +1,4 @@
-"""Two-point pose search under gravity and the surface check that ranks its poses."""
+"""Two-point pose search under gravity and the layout check that ranks its poses."""
 
 from __future__ import annotations
 
@@ -15,12 +15,7 @@ from catalign.registration.gravity import (
     yaw_ransac,
     yaw_rotations,
 )
-from catalign.registration.verification import (
-    CoverageCheck,
-    LayoutCheck,
-    SurfaceCheck,
-    top_offset,
-)
+from catalign.registration.verification import LayoutCheck, top_offset
 
 UP = np.array([0.0, 1.0, 0.0])
 
@@ -115,57 +110,6 @@ def test_level_pose_removes_tilt_and_keeps_yaw_and_pivot() -> None:
         return pose[:3, :3] @ pivot + pose[:3, 3]
 
     assert np.allclose(image(levelled), image(tilted))
-
-
-def test_surface_check_matches_a_brute_force_reference() -> None:
-    rng = np.random.default_rng(4)
-    surface = rng.uniform(-0.5, 0.5, (2_000, 3))
-    probes = rng.uniform(-0.6, 0.6, (100, 3))
-    poses = np.stack([np.eye(4)] * 3)
-    poses[1, :3, :3] = axis_angle(np.array([0.2, 1.0, 0.3]), 0.8)
-    poses[1, :3, 3] = [0.1, 0.0, -0.2]
-    poses[2, :3, :3] *= 1.3  # a similarity pose
-    scores = SurfaceCheck(surface).explained(probes, poses, 0.05)
-    for pose, score in zip(poses, scores, strict=True):
-        local = (probes - pose[:3, 3]) @ np.linalg.inv(pose[:3, :3]).T
-        gaps = np.linalg.norm(local[:, None] - surface[None], axis=2).min(axis=1)
-        expected = np.clip(1 - (gaps / 0.05) ** 2, 0, None).mean()
-        assert score == pytest.approx(expected, abs=1e-12)
-
-
-def test_surface_check_prefers_the_true_pose() -> None:
-    rng = np.random.default_rng(5)
-    surface = rng.uniform(-0.5, 0.5, (3_000, 3)) * [1.0, 0.1, 0.4]  # a flat, oblong slab
-    pose = np.eye(4)
-    pose[:3, :3] = axis_angle(UP, 0.9)
-    pose[:3, 3] = [0.5, 0.0, 0.2]
-    probes = surface[:300] @ pose[:3, :3].T + pose[:3, 3]
-    wrong = pose.copy()
-    wrong[:3, :3] = axis_angle(UP, 0.9 + np.pi / 2)
-    scores = SurfaceCheck(surface).explained(probes, np.stack([pose, wrong]), 0.05)
-    assert scores[0] > 0.9 and scores[1] < 0.6
-
-
-def test_coverage_check_matches_a_brute_force_reference() -> None:
-    rng = np.random.default_rng(6)
-    observed = rng.uniform(0.0, 0.5, (400, 3))
-    surface = rng.uniform(-0.2, 0.8, (600, 3))
-    poses = np.stack([np.eye(4)] * 2)
-    poses[1, :3, :3] = axis_angle(UP, 0.4)
-    poses[1, :3, 3] = [0.05, 0.0, -0.1]
-    covered = CoverageCheck(observed, margin=0.05).covered(surface, poses, 0.05)
-    for pose, share in zip(poses, covered, strict=True):
-        posed = surface @ pose[:3, :3].T + pose[:3, 3]
-        inside = np.all((posed >= observed.min(0) - 0.05) & (posed <= observed.max(0) + 0.05), 1)
-        gaps = np.linalg.norm(posed[inside][:, None] - observed[None], axis=2).min(axis=1)
-        assert share == pytest.approx((gaps < 0.05).mean(), abs=1e-12)
-
-
-def test_coverage_check_is_zero_when_nothing_lands_in_the_observed_region() -> None:
-    observed = np.random.default_rng(7).uniform(0.0, 0.5, (100, 3))
-    far = np.eye(4)
-    far[:3, 3] = [10.0, 0.0, 0.0]
-    assert CoverageCheck(observed, margin=0.05).covered(observed, far[None], 0.05)[0] == 0.0
 
 
 def _box_chair(rng: np.random.Generator) -> np.ndarray:

@@ -36,7 +36,7 @@ def keypoints(chair_points) -> np.ndarray:
 
 
 def _verifier(library, **options) -> Verifier:
-    defaults = {"distance": 0.06, "coverage_points": 1_500, "verify_top": 32}
+    defaults = {"distance": 0.06, "coverage_points": 1_500, "verify_top": 32, "cell": 0.015}
     return Verifier(library, **(defaults | options))
 
 

@@ -4,8 +4,10 @@ A mesh is sampled by area (:data:`SURFACE_POINTS` points), a point cloud is subs
 most as many; both with a generator seeded from the source's sha256, so the same file always
 gives the same entry. Coordinates are converted to metres (``source * unit_factor(units)``)
 before anything is stored, so a pose found against an entry maps *source coordinates converted
-to metres* into the observation. The extractor then gives key points and features, and
-:func:`~catalign.library.retrieval.global_descriptor` the vector used for shortlisting.
+to metres* into the observation. The extractor then gives key points and features,
+:func:`~catalign.library.retrieval.global_descriptor` the vector used for shortlisting, and
+:class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated distance field
+that verification reads instead of searching the points.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from catalign.errors import DegenerateInputError, ShapeReadError
+from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, DistanceGrid
 from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.library.retrieval import global_descriptor
@@ -37,8 +40,9 @@ class LibraryEntry:
 
     ``points`` (N,3) float32 surface samples, ``keypoints`` (M,3) float64 and ``features`` (M,D)
     float32 from the extractor, ``descriptor`` (K,) float32 for shortlisting, and the bounding
-    box of the whole source shape. ``source`` is the file path (or ``procedural:<seed>``),
-    ``source_sha256`` its checksum, ``units`` the unit the source was declared in.
+    box of the whole source shape, ``grid`` the distance field of ``points`` over that box.
+    ``source`` is the file path (or ``procedural:<seed>``), ``source_sha256`` its checksum,
+    ``units`` the unit the source was declared in.
     """
 
     model_id: str
@@ -49,6 +53,7 @@ class LibraryEntry:
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     size: np.ndarray
+    grid: DistanceGrid
     source: str
     source_sha256: str
     units: str
@@ -128,6 +133,14 @@ def describe_shape(
         )
     bbox_min = extent_points.min(axis=0).astype(np.float64)
     bbox_max = extent_points.max(axis=0).astype(np.float64)
+    voxel = extractor.voxel_size
+    grid = DistanceGrid.around(
+        points,
+        cell=CELL_VOXELS * voxel,
+        truncation=TRUNCATION_VOXELS * voxel,
+        low=bbox_min,
+        high=bbox_max,
+    )
     return LibraryEntry(
         model_id=model_id,
         points=np.ascontiguousarray(points, dtype=np.float32),
@@ -137,6 +150,7 @@ def describe_shape(
         bbox_min=bbox_min,
         bbox_max=bbox_max,
         size=bbox_max - bbox_min,
+        grid=grid,
         source=source,
         source_sha256=source_sha256,
         units=units,

@@ -35,11 +35,12 @@ import numpy as np
 
 from catalign.atomic import atomic_write_bytes, fsync_directory
 from catalign.errors import LibraryCorruptError, LibraryError
+from catalign.geometry.distance_grid import DistanceGrid
 from catalign.library.entry import LibraryEntry
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: entries hold their surface's distance grid
 MANIFEST_NAME = "manifest.json"
 ENTRIES_DIR = "entries"
 LOCK_NAME = ".lock"
@@ -233,6 +234,9 @@ def entry_bytes(entry: LibraryEntry) -> bytes:
         "bbox_min": np.asarray(entry.bbox_min, dtype=np.float64),
         "bbox_max": np.asarray(entry.bbox_max, dtype=np.float64),
         "size": np.asarray(entry.size, dtype=np.float64),
+        "grid": np.ascontiguousarray(entry.grid.values, dtype=np.uint8),
+        "grid_origin": np.asarray(entry.grid.origin, dtype=np.float64),
+        "grid_cell_step": np.array([entry.grid.cell, entry.grid.step], dtype=np.float64),
         "source": np.array(entry.source),
         "source_sha256": np.array(entry.source_sha256),
         "units": np.array(entry.units),
@@ -346,6 +350,7 @@ def _entry_from_arrays(arrays: dict[str, np.ndarray]) -> LibraryEntry:
     if any(a.shape != (3,) for a in (*boxes.values(), size)):
         raise ValueError("bbox_min, bbox_max and size must hold 3 values each")
     return LibraryEntry(
+        grid=_grid(arrays),
         points=points,
         keypoints=keypoints,
         features=features,
@@ -354,6 +359,15 @@ def _entry_from_arrays(arrays: dict[str, np.ndarray]) -> LibraryEntry:
         **boxes,
         **strings,
     )
+
+
+def _grid(arrays: dict[str, np.ndarray]) -> DistanceGrid:
+    values = _array(arrays["grid"], "grid", np.uint8, None, ndim=3)
+    origin = _array(arrays["grid_origin"], "grid_origin", np.float64, None, ndim=1)
+    cell, step = _array(arrays["grid_cell_step"], "grid_cell_step", np.float64, None, ndim=1)
+    if origin.shape != (3,) or not (cell > 0 and step > 0) or min(values.shape) < 2:
+        raise ValueError("the distance grid's origin, cell or step is invalid")
+    return DistanceGrid(values, origin, float(cell), float(step))
 
 
 def _array(

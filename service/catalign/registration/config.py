@@ -46,8 +46,9 @@ class EngineConfig(BaseModel):
     else 1)."""
     top_k: int | None = Field(default=10, ge=1)
     """Default shortlist size: library models registered per query (None: every entry)."""
-    ransac_factor: float = Field(default=2.0, gt=0)
-    """RANSAC and verification inlier distance, in voxels."""
+    ransac_factor: float = Field(default=2.0, gt=0, le=3.0)
+    """RANSAC and verification inlier distance, in voxels; at most 3, where the library's
+    distance grids (``catalign.geometry.distance_grid.TRUNCATION_VOXELS``) stop."""
     icp_factor: float = Field(default=1.0, gt=0)
     """ICP inlier distance, in voxels."""
     up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)

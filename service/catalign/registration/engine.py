@@ -40,6 +40,7 @@ import open3d as o3d
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
+from catalign.geometry.distance_grid import CELL_VOXELS
 from catalign.geometry.se3 import scale_of
 from catalign.library.index import Library
 from catalign.registration.alignment import point_cloud
@@ -89,7 +90,9 @@ class Engine:
         # The stages, each with its options from the config (from_config: same names).
         self.matcher = from_config(Matcher, config, library, distance=self.ransac_distance)
         self.hypothesiser = from_config(Hypothesiser, config, distance=self.ransac_distance)
-        self.verifier = from_config(Verifier, config, library, distance=self.ransac_distance)
+        self.verifier = from_config(
+            Verifier, config, library, distance=self.ransac_distance, cell=CELL_VOXELS * voxel
+        )
         self.refiner = Refiner(library, distance=self.icp_distance, normal_radius=2 * voxel)
         self.category_fitter = CategoryFitter(
             library, self.refiner, support_radius=2 * voxel, extent_points=config.coverage_points

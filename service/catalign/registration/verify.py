@@ -8,7 +8,7 @@ from its side where inlier counts cannot. With ``up``, a layout factor
 (:class:`~catalign.registration.verification.LayoutCheck`: does the query's top lean the way the
 posed model's does) nudges it, which tells the front from the back of another instance. The
 checks themselves live in :mod:`~catalign.registration.verification`; this module applies them
-to hypotheses, with the per-model pieces (surface tree, coverage sample, top offset) cached.
+to hypotheses, with the per-model pieces (surface grid, coverage sample, top offset) cached.
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ class Verifier:
 
     ``distance`` is the inlier distance (metres) of every check, ``coverage_points`` the model
     surface points the coverage check poses, ``verify_top`` the poses (best by the surface
-    check) that get the full score in :meth:`rank`.
+    check) that get the full score in :meth:`rank`, ``cell`` the edge (metres) of the query's
+    coverage grid.
     """
 
     library: Library
@@ -69,6 +70,7 @@ class Verifier:
     distance: float
     coverage_points: int
     verify_top: int
+    cell: float
     _checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = field(
         default_factory=dict, init=False, repr=False
     )
@@ -81,7 +83,7 @@ class Verifier:
         is the levelling turn when ``up`` is known (its second row is ``up``)."""
         return QueryChecks(
             probes=keypoints[probes],
-            coverage=CoverageCheck(keypoints, margin=self.distance),
+            coverage=CoverageCheck(keypoints, margin=self.distance, cell=self.cell),
             layout=None if turn is None else LayoutCheck(keypoints, turn[1]),
         )
 
@@ -135,10 +137,10 @@ class Verifier:
     def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
         """The model's surface check and its sample for the coverage check (cached)."""
         if model_id not in self._checks:
-            points = self.library[model_id].points
+            model = self.library[model_id]
             self._checks[model_id] = (
-                SurfaceCheck(points),
-                surface_sample(points, self.coverage_points),
+                SurfaceCheck(model.grid),
+                surface_sample(model.points, self.coverage_points),
             )
         return self._checks[model_id]
 
