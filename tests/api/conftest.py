@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import shutil
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -116,7 +118,7 @@ def run_server(*, grpc: bool = False, **overrides: object) -> Iterator[Server]:
     thread.start()
     url = f"http://127.0.0.1:{settings.port}"
     try:
-        _wait_ready(url, thread)
+        _wait_ready(url, thread.is_alive)
         grpc_target = f"127.0.0.1:{settings.grpc_port}" if settings.grpc_enabled else None
         yield Server(url=url, grpc_target=grpc_target, settings=settings)
     finally:
@@ -124,11 +126,64 @@ def run_server(*, grpc: bool = False, **overrides: object) -> Iterator[Server]:
         thread.join(timeout=60)
 
 
-def _wait_ready(url: str, thread: threading.Thread) -> None:
+@dataclass(frozen=True)
+class ServerProcess:
+    """``catalign serve`` running as a process of its own: where to reach it, and its process."""
+
+    url: str
+    process: subprocess.Popen
+
+
+@pytest.fixture(scope="session")
+def serve_process(model_dir: Path) -> Callable[..., AbstractContextManager[ServerProcess]]:
+    """``with serve_process(library, *flags, env={...}, preexec_fn=None) as server:`` runs
+    ``catalign serve`` in its own process (own GIL, own memory), stopped when the block ends."""
+    return partial(run_server_process, model_dir=model_dir)
+
+
+@contextmanager
+def run_server_process(
+    library: Path,
+    *flags: str,
+    model_dir: Path,
+    env: dict[str, str] | None = None,
+    preexec_fn: Callable[[], None] | None = None,
+) -> Iterator[ServerProcess]:
+    """``catalign serve`` on a free loopback port (gRPC off), ``CATALIGN_*`` from ``env`` only."""
+    port = free_port()
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
+    command = [
+        sys.executable,
+        "-c",
+        "from catalign.cli import app; app()",
+        "serve",
+        *("--model-dir", str(model_dir), "--library", str(library)),
+        *("--port", str(port), "--grpc-port", "0", *flags),
+    ]
+    process = subprocess.Popen(
+        command,
+        env=environment | (env or {}),
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        preexec_fn=preexec_fn,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        _wait_ready(url, lambda: process.poll() is None)
+        yield ServerProcess(url=url, process=process)
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+def _wait_ready(url: str, alive: Callable[[], bool]) -> None:
     deadline = time.monotonic() + START_TIMEOUT_S
     while time.monotonic() < deadline:
-        if not thread.is_alive():
-            raise RuntimeError("the server thread stopped during start-up (see the log)")
+        if not alive():
+            raise RuntimeError("the server stopped during start-up (see the log)")
         try:
             if httpx.get(f"{url}/health/ready", timeout=5).status_code == 200:
                 return

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -29,14 +29,13 @@ import psutil
 import pytest
 
 if TYPE_CHECKING:
-    from tests.api.conftest import View
+    from tests.api.conftest import ServerProcess, View
 
 pytestmark = pytest.mark.slow
 
 FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "30"))
 DEADLINE_S = 10.0
 PROBE_EVERY_S = 0.05
-START_TIMEOUT_S = 180.0
 
 
 @dataclass
@@ -51,32 +50,13 @@ class Tally:
 
 
 @pytest.fixture(scope="module")
-def server(model_dir: Path, library_dir: Path) -> Iterator[tuple[str, psutil.Process]]:
+def server(
+    serve_process: Callable[..., AbstractContextManager[ServerProcess]], library_dir: Path
+) -> Iterator[tuple[str, psutil.Process]]:
     """``catalign serve`` as a subprocess: 2 workers, a queue of 8, the default deadline."""
-    port = _free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-    env["CATALIGN_LOG_LEVEL"] = "warning"
-    command = [
-        sys.executable,
-        "-c",
-        "from catalign.cli import app; app()",
-        "serve",
-        *("--model-dir", str(model_dir), "--library", str(library_dir)),
-        *("--port", str(port), "--grpc-port", "0", "--workers", "2", "--queue", "8"),
-    ]
-    process = subprocess.Popen(
-        command, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=None
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        _wait_ready(url, process)
-        yield url, psutil.Process(process.pid)
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            process.kill()
+    flags = ("--workers", "2", "--queue", "8")
+    with serve_process(library_dir, *flags, env={"CATALIGN_LOG_LEVEL": "warning"}) as running:
+        yield running.url, psutil.Process(running.process.pid)
 
 
 @pytest.mark.parametrize("clients", [16, 64])
@@ -178,23 +158,3 @@ def _wait_for_rss(process: psutil.Process, idle: int, timeout: float = 30.0) -> 
         if time.monotonic() > deadline:
             raise AssertionError(f"RSS {rss >> 20} MiB after the flood, {idle >> 20} MiB idle")
         time.sleep(0.5)
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def _wait_ready(url: str, process: subprocess.Popen) -> None:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError("catalign serve exited during start-up (see its log above)")
-        try:
-            if httpx.get(f"{url}/health/ready", timeout=5).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError(f"catalign serve at {url} was not ready after {START_TIMEOUT_S:.0f} s")

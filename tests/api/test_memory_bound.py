@@ -14,14 +14,11 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import resource
-import socket
-import subprocess
-import sys
-import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import httpx
 import numpy as np
@@ -31,45 +28,27 @@ from catalign.data.shapes import procedural_shape
 from catalign.geometry.sampling import sample_surface, voxel_downsample
 from catalign.registration.validation import MAX_VOXELS
 
+if TYPE_CHECKING:
+    from tests.api.conftest import ServerProcess
+
 pytestmark = pytest.mark.slow
 
 ADDRESS_SPACE = 2 << 30
 MAX_POINTS = 500_000  # the server's default limit
-START_TIMEOUT_S = 180.0
 BINARY = {"content-type": "application/octet-stream"}
 
 
 @pytest.fixture(scope="module")
-def url(model_dir: Path, library_dir: Path) -> Iterator[str]:
-    port = _free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-    env["CATALIGN_DEADLINE_S"] = "120"  # memory is under test here, not time
-    command = [
-        sys.executable,
-        "-c",
-        "from catalign.cli import app; app()",
-        "serve",
-        *("--model-dir", str(model_dir), "--library", str(library_dir)),
-        *("--port", str(port), "--grpc-port", "0"),
-    ]
-    process = subprocess.Popen(
-        command,
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE)),
-    )
-    address = f"http://127.0.0.1:{port}"
-    try:
-        _wait_ready(address, process)
-        yield address
-        assert process.poll() is None, "the server died"
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            process.kill()
+def url(
+    serve_process: Callable[..., AbstractContextManager[ServerProcess]], library_dir: Path
+) -> Iterator[str]:
+    def cap() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE, ADDRESS_SPACE))
+
+    # Memory is under test here, not time: a generous deadline.
+    with serve_process(library_dir, env={"CATALIGN_DEADLINE_S": "120"}, preexec_fn=cap) as server:
+        yield server.url
+        assert server.process.poll() is None, "the server died"
 
 
 def dense_chair_on_a_floor() -> np.ndarray:
@@ -125,23 +104,3 @@ def _lying_files() -> dict[str, bytes]:
     np.lib.format.write_array_header_1_0(npy, header)
     npy.write(b"\0" * 48)
     return {"evil.pcd": pcd, "evil.ply": ply, "evil.npy": npy.getvalue()}
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def _wait_ready(url: str, process: subprocess.Popen) -> None:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise RuntimeError("catalign serve exited during start-up under the cap")
-        try:
-            if httpx.get(f"{url}/health/ready", timeout=5).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError(f"catalign serve at {url} was not ready after {START_TIMEOUT_S:.0f} s")

@@ -62,30 +62,30 @@ def test_admission_refuses_what_could_not_finish_in_time() -> None:
     asyncio.run(scenario())
 
 
-def checking_until_stopped(deadline: Deadline, started: threading.Event) -> str:
-    """A job that works in small steps and checks its deadline between them, as the engine does."""
+def checking_until_stopped(
+    deadline: Deadline, started: threading.Event, stopped: threading.Event
+) -> str:
+    """A job that works in small steps and checks its deadline between them, as the engine
+    does; ``stopped`` is set when it gives its thread back."""
     started.set()
-    for _ in range(2_000):
-        deadline.check()
-        time.sleep(0.005)
-    return "finished"
+    try:
+        for _ in range(2_000):
+            deadline.check()
+            time.sleep(0.005)
+        return "finished"
+    finally:
+        stopped.set()
 
 
 def test_a_deadline_answers_at_once_and_stops_the_running_job() -> None:
     started, stopped = threading.Event(), threading.Event()
-
-    def job(deadline: Deadline) -> str:
-        try:
-            return checking_until_stopped(deadline, started)
-        finally:
-            stopped.set()
 
     async def scenario() -> None:
         pool = WorkPool(workers=1, queue=0, metrics=Metrics())
         deadline = Deadline(0.2)
         began = time.monotonic()
         with pytest.raises(DeadlineExceededError, match=r"deadline of 0\.2 s"):
-            await pool.run(job, deadline, deadline=deadline)
+            await pool.run(checking_until_stopped, deadline, started, stopped, deadline=deadline)
         assert time.monotonic() - began < 1.0  # not the job's 10 s
         assert await asyncio.to_thread(stopped.wait, 2.0)  # the worker gave its thread back
         await asyncio.sleep(0.05)
@@ -98,16 +98,12 @@ def test_a_deadline_answers_at_once_and_stops_the_running_job() -> None:
 def test_a_caller_that_goes_away_stops_the_running_job() -> None:
     started, stopped = threading.Event(), threading.Event()
 
-    def job(deadline: Deadline) -> str:
-        try:
-            return checking_until_stopped(deadline, started)
-        finally:
-            stopped.set()
-
     async def scenario() -> None:
         pool = WorkPool(workers=1, queue=0, metrics=Metrics())
         deadline = Deadline(60.0)
-        waiting = asyncio.ensure_future(pool.run(job, deadline, deadline=deadline))
+        waiting = asyncio.ensure_future(
+            pool.run(checking_until_stopped, deadline, started, stopped, deadline=deadline)
+        )
         assert await asyncio.to_thread(started.wait, 2.0)
         waiting.cancel()  # e.g. the HTTP client disconnected
         with pytest.raises(asyncio.CancelledError):
