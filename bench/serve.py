@@ -15,8 +15,8 @@ The whole run is repeated, one server at a time in the given order, for each val
 ``--threads-per-worker`` (``CATALIGN_THREADS_PER_WORKER``: the torch, BLAS/OpenMP and Open3D
 threads of each worker). The default ``1 2`` compares the even share of a 2-core machine with 2
 workers (1 thread each, the server's default there) against 2 threads per worker, which
-oversubscribes the cores as every server did before the numeric libraries were limited per
-worker. With the fix, throughput should rise up to the core count and then stay flat; the ratio
+oversubscribes the cores. With one thread per worker, throughput should rise up to the core
+count and then stay flat; the ratio
 of the sdk-binary req/s of the first value to the second is printed below the table.
 
 Latency is measured per request from before encoding to the parsed answer. The engine's own time

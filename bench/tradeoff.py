@@ -43,7 +43,7 @@ RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
 RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
 DEFAULT_CONFIGS = [
     "default",
-    "match_points=1000,model_points=none",  # the defaults before session 4
+    "match_points=1000,model_points=none",  # 1,000 query key points against all of a model's
     "model_points=1500",
     "keep_headings=2",
     "heading_models=5",

@@ -125,10 +125,11 @@ def _backrest_heading_deg(points: np.ndarray) -> tuple[float, float]:
 
 
 def test_every_shared_chair_has_its_backrest_on_plus_z(shared_chairs: SharedChairs):
-    """The common frame that NCC positives and the evaluation rely on; the meshes were a quarter
-    turn off until MESH_TO_CANONICAL (offsets 0.08-0.23 at -90 degrees). The nearest quarter turn
-    must be none; chairs whose top barely leans out of the middle (an offset under 7% of the
-    size-normalised diagonal: stools, armchairs whose arms reach the top quarter) say nothing."""
+    """The common frame that NCC positives and the evaluation rely on; the meshes arrive a
+    quarter turn off, which MESH_TO_CANONICAL undoes (offsets 0.08-0.23 at -90 degrees). The
+    nearest quarter turn must be none; chairs whose top barely leans out of the middle (an offset
+    under 7% of the size-normalised diagonal: stools, armchairs whose arms reach the top quarter)
+    say nothing."""
     off = {}
     for shape_id in shared_chairs.ids():
         heading, offset = _backrest_heading_deg(shared_chairs.load(shape_id).points)
