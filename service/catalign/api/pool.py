@@ -92,10 +92,10 @@ class WorkPool:
     def full(self) -> bool:
         if self._admitted >= self.capacity:
             return True
-        # When would one more job finish, the jobs admitted ahead run at the mean duration?
-        rounds = self._admitted // self.workers + 1
         if self.max_wait_s is None or self._mean_s is None:
             return False
+        # When would one more job finish, the jobs admitted ahead run at the mean duration?
+        rounds = self._admitted // self.workers + 1
         return rounds * self._mean_s > self.max_wait_s
 
     def retry_after(self) -> int:

@@ -34,7 +34,7 @@ from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
 from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
-from catalign.api.spool import Spool, default_spool_root
+from catalign.api.spool import Spool
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError, ShapeReadError
 from catalign.threads import limit_threads
@@ -62,7 +62,7 @@ class RegistrationService:
         self._pool: WorkPool | None = None
         self._changes = asyncio.Lock()
         self._stamp: tuple[int, int, int] | None = None
-        self.spool = Spool(settings.spool_dir or default_spool_root(settings.library))
+        self.spool = Spool(settings.spool_dir, library=settings.library)
 
     # life cycle -------------------------------------------------------------------------------
 
@@ -344,13 +344,11 @@ class RegistrationService:
     def _add(
         self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str
     ) -> Library:
-        from catalign.geometry.headers import check_header
         from catalign.library.index import add, load
 
         # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
         with _shown_as(source, upload.filename):
-            check_header(source, max_points=self.settings.max_points)
             add(
                 self.settings.library,
                 [source],
@@ -359,6 +357,7 @@ class RegistrationService:
                 units=units,
                 progress=False,
                 source_name=f"upload:{upload.filename}",
+                max_points=self.settings.max_points,
             )
         logger.info("added model %s to %s", model_id, self.settings.library)
         return load(self.settings.library, extractor.fingerprint)

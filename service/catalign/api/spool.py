@@ -42,10 +42,12 @@ def default_spool_root(library: Path) -> Path:
 
 
 class Spool:
-    """This process's spool folder under ``root``; :meth:`open` also clears dead ones."""
+    """This process's spool folder under ``root`` (None: :func:`default_spool_root` of
+    ``library``, found at :meth:`open`, which also clears the folders of dead processes)."""
 
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path | None, *, library: Path) -> None:
         self.root = root
+        self.library = library
         self._folder: Path | None = None
         self._lock: IO[bytes] | None = None
 
@@ -57,6 +59,8 @@ class Spool:
 
     def open(self) -> None:
         """Remove the folders of dead processes, then create and lock this process's own."""
+        if self.root is None:
+            self.root = default_spool_root(self.library)
         self.root.mkdir(parents=True, exist_ok=True)
         removed = remove_stale(self.root)
         if removed:

@@ -163,10 +163,12 @@ def describe_file(
     units: str = "m",
     num_points: int = SURFACE_POINTS,
     source_name: str | None = None,
+    max_points: int | None = None,
 ) -> LibraryEntry:
     """Read and describe one shape file; the source is recorded as ``source_name`` when given
-    (an upload's original name), else as the file's absolute path."""
-    shape = read_shape(source.path)
+    (an upload's original name), else as the file's absolute path. A file with more than
+    ``max_points`` points or vertices is refused from its header."""
+    shape = read_shape(source.path, max_points=max_points)
     return describe_shape(
         source.model_id,
         shape,

@@ -185,12 +185,14 @@ def add(
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
     source_name: str | None = None,
+    max_points: int | None = None,
 ) -> Manifest:
     """Add entries to an existing library, or with ``replace`` replace those whose id exists.
 
     Adding an id the library already holds without ``replace`` raises InvalidInputError and
     changes nothing. ``source_name`` is recorded as the source of a single added file instead
-    of its path (the service names uploads so, not by their temporary files).
+    of its path (the service names uploads so, not by their temporary files); files with more
+    than ``max_points`` points or vertices are refused (the service's upload limit).
     """
     library_dir = Path(library_dir)
     unit_factor(units)
@@ -202,7 +204,7 @@ def add(
         _Job(
             s.model_id,
             str(s.path),
-            partial(describe_file, s, extractor, units, num_points, source_name),
+            partial(describe_file, s, extractor, units, num_points, source_name, max_points),
         )
         for s in found
     ]

@@ -58,7 +58,7 @@ FAR_RADIUS_M = 3.0
 # More than this share of the cloud that far out: not one chair in metres.
 MAX_FAR_SHARE = 0.2
 # Occupied voxels a query may have: about twice the largest chair view measured, room for some
-# floor around it; the largest query then takes about 4 s on one core.
+# floor around it; the largest query then takes about 2.5 s on one core.
 MAX_VOXELS = 12_000
 # Cells per voxel edge of the grid dense clouds are down-sampled to, and what counts as dense.
 FINE_CELLS = 4

@@ -91,48 +91,47 @@ class Verifier:
         """The ``verify_top`` poses that explain most of the query, fully scored, best first."""
         explained = self.explained(hypotheses, query.probes)
         best_first = np.argsort(explained, kind="stable")[::-1][: self.verify_top]
-        scored = [
-            Scored(hypotheses[i], self._score(hypotheses[i], explained[i], query))
-            for i in best_first
-        ]
+        best = [hypotheses[i] for i in best_first]
+        covered, leaning = self._covered_and_leaning(best, query)
+        scores = explained[best_first] * covered * leaning
+        scored = [Scored(h, float(s)) for h, s in zip(best, scores, strict=True)]
         scored.sort(key=lambda item: -item.score)
         return scored
 
     def score(self, hypothesis: Hypothesis, query: QueryChecks) -> Scored:
         """One pose, fully scored."""
         explained = self.explained([hypothesis], query.probes)[0]
-        return Scored(hypothesis, self._score(hypothesis, explained, query))
+        covered, leaning = self._covered_and_leaning([hypothesis], query)
+        return Scored(hypothesis, float(explained * covered[0] * leaning[0]))
 
     def explained(self, hypotheses: list[Hypothesis], probes: np.ndarray) -> np.ndarray:
         """The share of the query each pose lays onto its model (:class:`SurfaceCheck`), one
         surface query per model."""
         explained = np.zeros(len(hypotheses))
-        by_model: dict[str, list[int]] = {}
-        for i, hypothesis in enumerate(hypotheses):
-            by_model.setdefault(hypothesis.model_id, []).append(i)
-        for model_id, rows in by_model.items():
+        for model_id, rows, poses in _by_model(hypotheses):
             surface, _ = self._checks_of(model_id)
-            poses = np.stack([hypotheses[i].transform for i in rows])
             explained[rows] = surface.explained(probes, poses, self.distance)
         return explained
 
-    def _score(self, hypothesis: Hypothesis, explained: float, query: QueryChecks) -> float:
-        """A pose's explained share (from :meth:`explained`) times its covered share, nudged by
-        the layout check."""
-        _, sample = self._checks_of(hypothesis.model_id)
-        pose = hypothesis.transform[None]
-        covered = float(query.coverage.covered(sample, pose, self.distance)[0])
-        return float(explained * covered * self._leaning(hypothesis, query.layout))
+    def _covered_and_leaning(
+        self, hypotheses: list[Hypothesis], query: QueryChecks
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Each pose's covered share (:class:`CoverageCheck`) and layout factor (1 without
+        ``up``), one batch per model: the factors :meth:`explained` is multiplied by."""
+        covered, leaning = np.zeros(len(hypotheses)), np.ones(len(hypotheses))
+        for model_id, rows, poses in _by_model(hypotheses):
+            _, sample = self._checks_of(model_id)
+            covered[rows] = query.coverage.covered(sample, poses, self.distance)
+            if query.layout is not None:
+                leaning[rows] = query.layout.factor(self._top_offset_of(model_id), poses)
+        return covered, leaning
 
-    def _leaning(self, hypothesis: Hypothesis, layout: LayoutCheck | None) -> float:
-        """:class:`LayoutCheck`'s factor for the pose (1 without ``up``)."""
-        if layout is None:
-            return 1.0
-        model_id = hypothesis.model_id
+    def _top_offset_of(self, model_id: str) -> np.ndarray:
+        """Where the model's top leans from its middle, in its own frame (cached)."""
         if model_id not in self._top_offsets:
             points = self.library[model_id].points.astype(np.float64)
             self._top_offsets[model_id] = top_offset(points, MODEL_UP)
-        return float(layout.factor(self._top_offsets[model_id], hypothesis.transform[None])[0])
+        return self._top_offsets[model_id]
 
     def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
         """The model's surface check and its sample for the coverage check (cached)."""
@@ -143,6 +142,17 @@ class Verifier:
                 surface_sample(model.points, self.coverage_points),
             )
         return self._checks[model_id]
+
+
+def _by_model(hypotheses: list[Hypothesis]) -> list[tuple[str, list[int], np.ndarray]]:
+    """``(model id, rows of hypotheses, their stacked poses)`` for each model among them."""
+    rows: dict[str, list[int]] = {}
+    for i, hypothesis in enumerate(hypotheses):
+        rows.setdefault(hypothesis.model_id, []).append(i)
+    return [
+        (model_id, found, np.stack([hypotheses[i].transform for i in found]))
+        for model_id, found in rows.items()
+    ]
 
 
 def best_per_model(model_ids: list[str], scored: list[Scored]) -> list[Candidate]:
