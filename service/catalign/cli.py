@@ -60,6 +60,14 @@ def evaluate(
             help="Tell the method that world +Z is up (default: on for upright, off for so3).",
         ),
     ] = None,
+    floor: Annotated[
+        bool,
+        typer.Option(
+            "--floor/--no-floor",
+            help="Keep a ring of floor around each chair, as a segmentation that kept some floor "
+            "would (upright only).",
+        ),
+    ] = False,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
@@ -75,6 +83,10 @@ def evaluate(
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
         if pose_mode not in ("upright", "so3"):
             raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright or so3")
+        if floor and pose_mode != "upright":
+            raise ConfigError(
+                "--floor needs --pose-mode upright: a tilted chair stands on no floor"
+            )
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]
@@ -84,10 +96,12 @@ def evaluate(
             pose_mode=pose_mode,  # type: ignore[arg-type]
             model_dir=model_dir,
             up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
+            floor=floor,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
     prior = "" if config.up_prior else "-no-up"
-    path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}.json"
+    kept = "-floor" if floor else ""
+    path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}{kept}.json"
     write_report(report, path)
     typer.echo(report["table"])
     typer.echo(f"\nreport written to {path}")

@@ -4,21 +4,25 @@ import numpy as np
 import pytest
 import trimesh
 
-from catalign.data.shapes import Shape
+from catalign.data.shapes import Shape, procedural_shape
 from catalign.data.views import (
     MODEL_TO_WORLD_UP,
     Camera,
     DepthNoise,
+    Floor,
     add_depth_noise,
     camera_at,
+    disc_points,
     fixed_viewpoints,
     random_camera,
     random_object_pose,
     render_mesh_view,
     render_view,
+    surface_density,
+    upright_rotation,
     visible_point_view,
 )
-from catalign.geometry.se3 import make_pose, transform
+from catalign.geometry.se3 import axis_angle, make_pose, transform
 
 RADIUS = 0.3
 CENTRE = np.array([0.2, -0.1, 0.5])
@@ -227,3 +231,162 @@ def test_render_view_is_deterministic(sphere_shape: Shape, camera: Camera):
     clean = render_view(sphere_shape, pose, camera, np.random.default_rng(0), noisy=False)
     # noise of a few millimetres at 1.5 m
     assert 0.001 < np.linalg.norm(a - clean, axis=1).mean() < 0.01
+
+
+# --- floor kept around the chair ----------------------------------------------------------------
+
+FLOOR_Z_TOLERANCE = 1e-4  # ray hits on the floor plane, in float32
+
+
+def _upright_pose(yaw: float, xy: tuple[float, float], height: float) -> np.ndarray:
+    return make_pose(upright_rotation(yaw), np.array([xy[0], xy[1], height]))
+
+
+def _footprint(posed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return posed[:, :2].min(axis=0), posed[:, :2].max(axis=0)
+
+
+def _on_floor_outside(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Points on the floor plane z = 0, beyond a 2 cm band around the chair's footprint."""
+    outside = ((points[:, :2] < low - 0.02) | (points[:, :2] > high + 0.02)).any(axis=1)
+    return outside & (np.abs(points[:, 2]) < FLOOR_Z_TOLERANCE)
+
+
+def _free_line_of_sight(vertices: np.ndarray, faces: np.ndarray, eye, points) -> np.ndarray:
+    """Whether nothing of the mesh lies between ``eye`` and each point (exact ray casting)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
+    )
+    offsets = points - eye
+    distance = np.linalg.norm(offsets, axis=1)
+    rays = np.c_[np.tile(eye, (len(points), 1)), offsets / distance[:, None]]
+    t_hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+    return t_hit >= distance - 1e-4
+
+
+@pytest.fixture(scope="module")
+def procedural_chair() -> Shape:
+    return procedural_shape(3)
+
+
+def test_floor_view_of_a_mesh_chair(procedural_chair: Shape, rng):
+    shape = procedural_chair
+    pose = _upright_pose(0.7, (0.3, -0.2), shape.height / 2)
+    camera = camera_at(pose[:3, 3], 2.0, 30.0, 40.0)
+    plain = render_view(shape, pose, camera, rng, noisy=False)
+    kept = render_view(shape, pose, camera, rng, noisy=False, floor=Floor())
+    posed = transform(shape.mesh.vertices, pose)
+    assert abs(posed[:, 2].min()) < 1e-3  # the procedural chair stands on z = 0
+    low, high = _footprint(posed)
+    # without floor nothing lies on the floor around the chair; with it, thousands of points do
+    assert _on_floor_outside(plain, low, high).sum() == 0
+    floor = kept[np.abs(kept[:, 2]) < FLOOR_Z_TOLERANCE]
+    assert _on_floor_outside(kept, low, high).sum() > 5000
+    # the disc reaches the footprint's half-diagonal plus the default 0.3 m margin, no further
+    radius = 0.5 * np.hypot(*(high - low)) + 0.3
+    reach = np.linalg.norm(floor[:, :2] - (low + high) / 2, axis=1).max()
+    assert 0.97 * radius < reach <= radius / np.cos(np.pi / 64) + 1e-4
+    # the floor changes nothing of the chair: every pixel that saw the chair still does
+    np.testing.assert_array_equal(kept[kept[:, 2] > 1e-3], plain[plain[:, 2] > 1e-3])
+    # and no floor point is seen through the chair
+    assert _free_line_of_sight(posed, shape.mesh.faces, camera.eye, floor).all()
+
+
+def test_floor_under_the_seat_is_hidden(box_chair: Shape, rng):
+    # the box chair's legs stand on model y = 0, so a pose at height 0 puts them on z = 0
+    pose = _upright_pose(0.3, (0.0, 0.0), 0.0)
+    seat_centre = transform(np.array([[0.0, 0.45, 0.0]]), pose)[0]
+    camera = camera_at(seat_centre, 2.0, 85.0, 10.0)  # nearly straight down onto the seat
+    floor_margin = 0.5
+    for shape in (box_chair, Shape("box-points", box_chair.points)):
+        kept = render_view(shape, pose, camera, rng, noisy=False, floor=Floor(floor_margin))
+        floor = kept[np.abs(kept[:, 2]) < FLOOR_Z_TOLERANCE]
+        horizontal = np.linalg.norm(floor[:, :2] - seat_centre[:2], axis=1)
+        assert (horizontal > 0.5).sum() > 1000, shape.shape_id  # the ring around is seen ...
+        # ... the floor under the seat not (for points: no floor point leaks between splats)
+        assert (horizontal < 0.15).sum() == 0, shape.shape_id
+
+
+def test_point_chair_floor_keeps_the_chair_view(box_chair: Shape, rng):
+    shape = Shape("box-points", box_chair.points)
+    pose = _upright_pose(1.1, (-0.4, 0.5), 0.0)
+    camera = camera_at(np.array([-0.4, 0.5, 0.45]), 1.8, 25.0, 200.0)
+    plain = render_view(shape, pose, camera, rng, noisy=False)
+    kept = render_view(shape, pose, camera, np.random.default_rng(7), noisy=False, floor=Floor())
+    posed = transform(shape.points, pose)
+    low, high = _footprint(posed)
+    # the chair's visible points are exactly those of the view without floor
+    chair = {p.tobytes() for p in plain}
+    extra = np.array([p for p in kept if p.tobytes() not in chair])
+    assert len(kept) - len(extra) == len(plain)
+    # what was added is floor, at the chair's lowest point, and most of it beyond the chair
+    np.testing.assert_array_equal(extra[:, 2], posed[:, 2].min())
+    assert _on_floor_outside(plain, low, high).sum() == 0
+    assert _on_floor_outside(kept, low, high).sum() > 0.6 * len(extra)
+    # at the shape's own density: the camera sees the near half of the disc or more
+    radius = 0.5 * np.hypot(*(high - low)) + 0.3
+    disc_count = surface_density(posed) * np.pi * radius**2
+    assert 0.4 * disc_count < len(extra) < disc_count
+
+
+def test_floor_points_get_depth_noise(procedural_chair: Shape):
+    pose = _upright_pose(2.0, (0.0, 0.0), procedural_chair.height / 2)
+    camera = camera_at(pose[:3, 3], 2.0, 30.0, 0.0)
+    low, high = _footprint(transform(procedural_chair.mesh.vertices, pose))
+    kept = render_view(procedural_chair, pose, camera, np.random.default_rng(0), floor=Floor())
+    outside = ((kept[:, :2] < low - 0.05) | (kept[:, :2] > high + 0.05)).any(axis=1)
+    floor_z = kept[outside & (np.abs(kept[:, 2]) < 0.05), 2]
+    # a few millimetres of depth noise at about 2 m, seen at an angle: the floor is not flat
+    assert len(floor_z) > 5000
+    assert 0.001 < floor_z.std() < 0.01
+
+
+def _tilt(degrees: float) -> np.ndarray:
+    return axis_angle(np.array([1.0, 0.0, 0.0]), np.radians(degrees))
+
+
+def test_floor_needs_an_upright_chair(box_chair: Shape, rng):
+    camera = camera_at(np.array([0.0, 0.0, 0.45]), 2.0, 30.0, 0.0)
+    for shape in (box_chair, Shape("box-points", box_chair.points)):
+        tilted = make_pose(_tilt(2.0) @ upright_rotation(0.0), np.zeros(3))
+        with pytest.raises(ValueError, match=r"a floor needs an upright chair.*2\.0 degrees"):
+            render_view(shape, tilted, camera, rng, floor=Floor())
+        so3 = random_object_pose(np.random.default_rng(1), "so3", height=0.45)
+        with pytest.raises(ValueError, match="a floor needs an upright chair"):
+            render_view(shape, so3, camera, rng, floor=Floor())
+        # half a degree of tilt is still upright enough, and so3 without floor is fine
+        nearly = make_pose(_tilt(0.5) @ upright_rotation(0.0), np.zeros(3))
+        assert len(render_view(shape, nearly, camera, rng, floor=Floor())) > 100
+        assert len(render_view(shape, so3, camera, rng)) > 100
+
+
+def test_floor_needs_the_camera_above_it(box_chair: Shape, rng):
+    below = Camera(eye=np.array([2.0, 0.0, -0.5]), target=np.array([0.0, 0.0, 0.45]))
+    with pytest.raises(ValueError, match="camera above the floor"):
+        render_view(box_chair, _upright_pose(0.0, (0.0, 0.0), 0.0), below, rng, floor=Floor())
+
+
+def test_floor_settings_are_checked():
+    with pytest.raises(ValueError, match="non-negative"):
+        Floor(margin=-0.1)
+    with pytest.raises(ValueError, match="segments"):
+        Floor(segments=3)
+
+
+def test_surface_density_and_disc_points(box_chair: Shape, rng):
+    # a point-only shape's density, from its spacing alone, is the sample's points per m²
+    area = trimesh.Trimesh(box_chair.mesh.vertices, box_chair.mesh.faces, process=False).area
+    expected = len(box_chair.points) / area
+    assert surface_density(box_chair.points) == pytest.approx(expected, rel=0.1)
+    centre = np.array([0.5, -1.0, 0.2])
+    points = disc_points(centre, 0.8, 5000.0, rng)
+    assert len(points) == round(5000.0 * np.pi * 0.8**2)
+    np.testing.assert_array_equal(points[:, 2], 0.2)
+    radial = np.linalg.norm(points[:, :2] - centre[:2], axis=1)
+    assert radial.max() <= 0.8
+    # uniform by area: a quarter of the points within half the radius
+    assert (radial < 0.4).mean() == pytest.approx(0.25, abs=0.02)
+    assert surface_density(points) == pytest.approx(5000.0, rel=0.05)

@@ -3,11 +3,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from catalign.cli import app
+from catalign.data.shapes import procedural_shape
+from catalign.evaluation.protocol import build_cases
 from catalign.evaluation.report import COLUMNS
+from catalign.geometry.se3 import transform
 
 runner = CliRunner()
 PERCENT_COLUMNS = [c for c in COLUMNS if not c.startswith("s/")]
@@ -27,7 +31,7 @@ def test_help_lists_evaluate():
     assert "evaluate" in result.output
     sub = runner.invoke(app, ["evaluate", "--help"])
     assert sub.exit_code == 0
-    for option in ("--method", "--setting", "--views", "--max-shapes", "--out"):
+    for option in ("--method", "--setting", "--views", "--max-shapes", "--floor", "--out"):
         assert option in sub.output
 
 
@@ -50,6 +54,7 @@ def test_evaluate_report_json(evaluated):
     report = json.loads(out.read_text())
     assert report["config"]["method"] == "fpfh"
     assert report["config"]["settings"] == ["same", "cross"]
+    assert report["config"]["floor"] is False
     assert report["split"] == {"val": 2, "train": 2}
     rows = {row["setting"]: row for row in report["rows"]}
     assert set(rows) == {"same", "cross"}
@@ -101,6 +106,47 @@ def test_unknown_pose_mode_exits_2(tmp_path: Path):
     result = runner.invoke(app, args)
     assert result.exit_code == 2
     assert "unknown pose mode 'sideways'" in result.stderr
+
+
+def test_floor_with_so3_exits_2(tmp_path: Path):
+    # refused before any shape is read: the chairs folder does not even exist
+    out = tmp_path / "x.json"
+    args = ["evaluate", "--floor", "--pose-mode", "so3", "--chairs-dir", str(tmp_path / "none")]
+    result = runner.invoke(app, [*args, "--out", str(out)])
+    assert result.exit_code == 2
+    assert "--floor needs --pose-mode upright" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in result.output
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_evaluate_with_floor_records_it(chairs_root: Path, tmp_path: Path):
+    out = tmp_path / "floor.json"
+    args = ["evaluate", "--floor", "--max-shapes", "1", "--views", "1", "--setting", "same"]
+    result = runner.invoke(app, [*args, "--chairs-dir", str(chairs_root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(out.read_text())
+    assert report["config"]["floor"] is True
+    assert report["config"]["pose_mode"] == "upright"
+    assert [row["cases"] for row in report["rows"]] == [1]
+
+
+def test_build_cases_with_floor():
+    shapes = {"p3": procedural_shape(3)}
+    plain = build_cases(shapes, views=2, seed=5)
+    kept = build_cases(shapes, views=2, seed=5, floor=True)
+    for a, b in zip(plain, kept, strict=True):
+        np.testing.assert_array_equal(a.pose, b.pose)  # the same placements and cameras ...
+        posed = transform(shapes["p3"].mesh.vertices, b.pose)
+        low, high = posed[:, :2].min(axis=0), posed[:, :2].max(axis=0)
+        beyond = ((b.points[:, :2] < low - 0.05) | (b.points[:, :2] > high + 0.05)).any(axis=1)
+        near_floor = np.abs(b.points[:, 2] - posed[:, 2].min()) < 0.03
+        assert (beyond & near_floor).sum() > 1000  # ... plus floor around the chair
+        beyond = ((a.points[:, :2] < low - 0.05) | (a.points[:, :2] > high + 0.05)).any(axis=1)
+        assert beyond.sum() == 0
+    with pytest.raises(ValueError, match="a floor needs upright poses"):
+        build_cases(shapes, views=1, seed=0, pose_mode="so3", floor=True)
 
 
 def test_missing_chairs_folder_exits_2(tmp_path: Path):

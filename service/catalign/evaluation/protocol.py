@@ -7,7 +7,9 @@ Settings, as in the paper:
 
 Every validation shape is observed ``views`` times: upright (or free SO(3)) at a random place,
 scaled to a realistic height, seen by a random camera with structured-light noise, capped at
-``max_points``. Everything derives from ``seed``, so two runs see the same cases.
+``max_points``. With ``floor`` every view also keeps a ring of floor around the chair (upright
+only), as a segmentation that kept some floor would. Everything derives from ``seed``, so two
+runs see the same cases.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from catalign.data.shapes import Shape, SharedChairs, to_metric
-from catalign.data.views import PoseMode, random_camera, random_object_pose, render_view
+from catalign.data.views import Floor, PoseMode, random_camera, random_object_pose, render_view
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
@@ -57,15 +59,24 @@ def build_cases(
     seed: int,
     pose_mode: PoseMode = "upright",
     max_points: int = 20_000,
+    floor: bool = False,
 ) -> list[TestCase]:
-    """``views`` noisy partial observations of every shape, all derived from ``seed``."""
+    """``views`` noisy partial observations of every shape, all derived from ``seed``.
+
+    ``floor`` keeps a ring of floor (:class:`~catalign.data.views.Floor`, default margin) in
+    every view; a chair only stands on a floor when upright, so ``so3`` is refused.
+    """
+    if floor and pose_mode != "upright":
+        raise ValueError(f"a floor needs upright poses, not pose mode {pose_mode!r}")
+    floor_kept = Floor() if floor else None
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):
         for view in range(views):
             rng = np.random.default_rng([seed, index, view])
             pose = random_object_pose(rng, pose_mode, height=shape.height / 2)
             camera = random_camera(pose[:3, 3], rng)
-            points = subsample(render_view(shape, pose, camera, rng), max_points, rng)
+            seen = render_view(shape, pose, camera, rng, floor=floor_kept)
+            points = subsample(seen, max_points, rng)
             cases.append(TestCase(f"{shape_id}/{view}", shape_id, points, pose))
     return cases
 

@@ -35,6 +35,7 @@ class EvaluationConfig:
     pose_mode: PoseMode = "upright"
     model_dir: Path | None = None
     up_prior: bool = True
+    floor: bool = False
 
 
 def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
@@ -42,14 +43,15 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
 
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
     (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
-    +Z is up (true of upright observations; in ``so3`` mode it is a wrong prior).
+    +Z is up (true of upright observations; in ``so3`` mode it is a wrong prior). ``floor``
+    keeps a ring of floor around every observed chair (upright only).
     """
     up = WORLD_UP if config.up_prior else None
     registrar = build_registrar(config.method, config.model_dir, up)
     val_ids = _first(chairs.ids("val"), config.max_shapes)
     train_ids = _first(chairs.ids("train"), config.max_shapes)
     observed = metric_shapes(chairs, val_ids)
-    cases = build_cases(observed, config.views, config.seed, config.pose_mode)
+    cases = build_cases(observed, config.views, config.seed, config.pose_mode, floor=config.floor)
     libraries = {"same": observed, "cross": metric_shapes(chairs, train_ids)}
 
     summaries = []
