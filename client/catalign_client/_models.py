@@ -40,8 +40,9 @@ class AlignResult:
     ``pose`` is a read-only 4x4 float64 matrix mapping model coordinates (of the library entry's
     source file) into the observation: ``x_obs = pose[:3, :3] @ x_model + pose[:3, 3]``. With
     ``estimate_scale`` the upper-left block is ``scale * rotation``. ``points_set_aside``
-    counts query points the server dropped as far outliers before registering. ``up`` is the
-    up direction the request gave (not part of the answer; ``None`` when not given).
+    counts query points the server dropped before registering (far outliers, the floor, small
+    detached clusters). ``up`` is the up direction the pose was searched under: the request's,
+    or the server's estimate when ``up_estimated`` (``None`` for a free search).
 
     Usage::
 
@@ -61,6 +62,7 @@ class AlignResult:
     request_id: str
     points_set_aside: int = 0
     up: tuple[float, float, float] | None = None
+    up_estimated: bool = False
 
     @property
     def rotation(self) -> np.ndarray:
@@ -86,6 +88,8 @@ class AlignResult:
             "timings_ms": dict(self.timings_ms),
             "request_id": self.request_id,
             "points_set_aside": self.points_set_aside,
+            "up": None if self.up is None else list(self.up),
+            "up_estimated": self.up_estimated,
         }
 
     def plot(
@@ -98,7 +102,7 @@ class AlignResult:
     ) -> Figure:
         """Draw the observation against the posed model in three orthographic views.
 
-        The views are top, front and side around :attr:`up` when the request gave one (else
+        The views are top, front and side around :attr:`up` when the answer has one (else
         x-y, x-z and y-z); ``model_points`` (in model coordinates, e.g. from
         :meth:`Client.model_points`) are moved by :attr:`pose` and drawn in another colour. The
         title names the model and the fitness. Returns the matplotlib ``Figure`` and writes a
@@ -114,7 +118,8 @@ class AlignResult:
 
     @classmethod
     def from_json(cls, data: Any, *, up: tuple[float, float, float] | None = None) -> AlignResult:
-        """Parse the body of a ``POST /register`` answer; ``up`` is the request's, if any."""
+        """Parse the body of a ``POST /register`` answer; ``up`` is the request's, if any, for
+        answers of servers that do not report the up they used."""
         body = _mapping(data, "register answer")
         pose = _pose(body.get("pose"))
         candidates = [
@@ -134,7 +139,8 @@ class AlignResult:
             timings_ms={str(k): _float(timings, k) for k in timings},
             request_id=str(body.get("request_id") or ""),
             points_set_aside=_int(body, "points_set_aside") if "points_set_aside" in body else 0,
-            up=up,
+            up=_vec3(body, "up") if body.get("up") is not None else up,
+            up_estimated=bool(body.get("up_estimated", False)),
         )
 
 

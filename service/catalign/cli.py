@@ -198,6 +198,49 @@ def train(
     typer.echo(f"model written to {out}")
 
 
+@app.command("train-orientation")
+def train_orientation(
+    out: Annotated[Path, typer.Option(help="Run folder: cached views, weights and card.")] = Path(
+        "runs/orientation"
+    ),
+    steps: Annotated[int, typer.Option(min=1, help="Optimizer steps.")] = 3_000,
+    batch_size: Annotated[int, typer.Option(min=1, help="Views per step.")] = 64,
+    views_per_shape: Annotated[int, typer.Option(min=1, help="Views rendered per shape.")] = 48,
+    procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 60,
+    seed: Annotated[int, typer.Option(help="Seed of views, samples and initial weights.")] = 0,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = 2,
+    learning_rate: Annotated[float, typer.Option(help="Peak learning rate.")] = 2e-3,
+    init_from: Annotated[
+        Path | None, typer.Option(help="Start from another run's weights (a longer schedule).")
+    ] = None,
+    chairs_dir: Annotated[
+        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+) -> None:
+    """Train the orientation proposal networks (up and heading) on views of training chairs."""
+    from catalign.data.shapes import SharedChairs
+    from catalign.training.orientation import OrientationConfig, run
+
+    config = OrientationConfig(
+        out=out,
+        steps=steps,
+        batch_size=batch_size,
+        views_per_shape=views_per_shape,
+        procedural=procedural,
+        seed=seed,
+        threads=threads,
+        learning_rate=learning_rate,
+        init_from=init_from,
+    )
+    with exit_on_error():
+        card = run(config, SharedChairs(chairs_dir))
+    typer.echo(json.dumps(card["held_out_accuracy"], indent=2))
+    typer.echo(
+        f"orientation model written to {out} (ship it: copy its orientation.* files "
+        "to model_store/orientation/)"
+    )
+
+
 @app.command()
 def serve(
     library: Annotated[

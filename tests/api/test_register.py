@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 STAGES = {
     "queue",
     "validate",
+    "orient",
     "features",
     "shortlist",
     "match_ransac",

@@ -14,7 +14,9 @@ from catalign.evaluation.report import COLUMNS
 from catalign.geometry.se3 import transform
 
 runner = CliRunner()
-PERCENT_COLUMNS = [c for c in COLUMNS if not c.startswith("s/")]
+# FPFH proposes no orientation: its proposal columns are None.
+PROPOSAL_COLUMNS = {"up@1", "up@3", "heading@1", "heading@2"}
+PERCENT_COLUMNS = [c for c in COLUMNS if not c.startswith("s/") and c not in PROPOSAL_COLUMNS]
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +68,8 @@ def test_evaluate_report_json(evaluated):
                 assert value is None  # retrieval of the observed CAD is moot across instances
                 continue
             assert value is not None and 0.0 <= value <= 100.0, (setting, column, value)
+        assert all(row[column] is None for column in PROPOSAL_COLUMNS)
+        assert row["refused"] == 0
         assert 0.0 < row["s/query median"] <= row["s/query p95"]
     assert set(report["cases"]) == {"same", "cross"}
     for cases in report["cases"].values():

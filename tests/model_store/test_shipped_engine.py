@@ -1,5 +1,6 @@
 """The shipped checkpoint and default library through the engine: library chairs' own partial
-views, under known rigid transforms, are recovered to within 2 degrees and 1 cm."""
+views, under known rigid transforms, are recovered to within 2 degrees and 1 cm with ``up``,
+and in any rotation without it (3 degrees and 3 cm)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import camera_at, render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
-from catalign.geometry.se3 import make_pose, rotation_error_deg
+from catalign.geometry.se3 import make_pose, random_rotation, rotation_error_deg
 from catalign.library.index import load
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
@@ -20,6 +21,10 @@ SEEDS = range(12)
 # within 2 degrees and 1 cm (0-3, 5-8 and 10). The features were trained on ShapeNet chairs
 # only. The floor leaves one case for other BLAS builds.
 MIN_RECOVERED = 8
+# The same views, the whole scene turned arbitrarily, without up: 7 of 12 recovered within 3
+# degrees and 3 cm (0, 2, 3, 5, 7, 8, 11). A turned scene is voxelised differently: with its up
+# given, 2 and 11 come within 1.1 and 1.6 degrees, 1.0 and 1.2 cm, hence the looser bounds.
+MIN_RECOVERED_WITHOUT_UP = 6
 
 
 @pytest.fixture(scope="module")
@@ -47,3 +52,27 @@ def _recovered(engine: Engine, seed: int) -> bool:
 def test_own_partial_views_are_recovered(engine: Engine) -> None:
     recovered = [seed for seed in SEEDS if _recovered(engine, seed)]
     assert len(recovered) >= MIN_RECOVERED, f"recovered only the views of chairs {recovered}"
+
+
+def _recovered_without_up(engine: Engine, seed: int) -> bool:
+    """The same scene as above, the whole of it turned by an arbitrary rotation (a tilted
+    hand-held sensor), registered without ``up``."""
+    shape = procedural_shape(seed)
+    rotation = upright_rotation(0.7 + 1.3 * seed)
+    pose = make_pose(rotation, np.array([0.3, -0.2, -shape.points[:, 1].min()]))
+    camera = camera_at(np.array([0.3, -0.2, 0.4]), 2.0, 25.0, 30.0)
+    points = render_view(shape, pose, camera, np.random.default_rng(seed))
+    turn = make_pose(random_rotation(np.random.default_rng(100 + seed)), np.array([0.5, 1.0, -0.2]))
+    expected = turn @ pose
+    result = engine.register(points @ turn[:3, :3].T + turn[:3, 3], seed=0)
+    return (
+        result.model_id == shape.shape_id
+        and result.up_estimated
+        and rotation_error_deg(result.pose[:3, :3], expected[:3, :3]) < 3.0
+        and float(np.linalg.norm(result.pose[:3, 3] - expected[:3, 3])) < 0.03
+    )
+
+
+def test_own_partial_views_in_any_rotation_are_recovered_without_up(engine: Engine) -> None:
+    recovered = [seed for seed in SEEDS if _recovered_without_up(engine, seed)]
+    assert len(recovered) >= MIN_RECOVERED_WITHOUT_UP, f"recovered only {recovered}"

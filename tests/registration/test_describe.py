@@ -10,8 +10,8 @@ import pytest
 from catalign.features.extractor import Described
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
-from catalign.registration.describe import describe, heading_turns
-from catalign.registration.gravity import leveller
+from catalign.registration.base import Orientation
+from catalign.registration.describe import describe, even_headings, rotations_of
 from catalign.registration.validation import CheckedCloud
 
 
@@ -22,6 +22,7 @@ class RecordingExtractor:
     voxel_size = 0.05
     fingerprint = "recording"
     headings = 1
+    orientation = None
 
     def __init__(self) -> None:
         self.passes: list[int] = []
@@ -39,6 +40,10 @@ def _cloud(voxels: int = 100) -> CheckedCloud:
     return CheckedCloud(points=points, received=voxels, set_aside=0, voxels=voxels)
 
 
+def heading_turns(turn_up: np.ndarray | None, count: int) -> list[np.ndarray]:
+    return rotations_of(Orientation(turn_up, turn_up is not None, even_headings(count)))
+
+
 def test_headings_are_even_turns_about_the_models_up() -> None:
     turns = heading_turns(None, 4)
     assert len(turns) == 4
@@ -49,7 +54,7 @@ def test_headings_are_even_turns_about_the_models_up() -> None:
 
 def test_every_heading_takes_the_given_up_onto_the_models_up() -> None:
     up = np.array([0.3, -0.2, 1.0])
-    for rotation in heading_turns(leveller(up), 8):
+    for rotation in heading_turns(up, 8):
         assert np.allclose(rotation @ (up / np.linalg.norm(up)), MODEL_UP)
 
 
@@ -60,16 +65,19 @@ def test_headings_share_as_few_passes_as_the_voxel_budget_allows(
     pass_voxels: int, passes: list[int]
 ) -> None:
     extractor = RecordingExtractor()
-    views = describe(extractor, _cloud(100), None, headings=8, pass_voxels=pass_voxels)
+    cloud = _cloud(100)
+    views = describe(
+        extractor, cloud.points, heading_turns(None, 8), voxels=100, pass_voxels=pass_voxels
+    )
     assert extractor.passes == passes
     assert len(views) == 8
 
 
 def test_key_points_come_back_in_the_observation_frame() -> None:
     cloud = _cloud()
-    turn = leveller(np.array([0.0, 0.0, 1.0]))
-    views = describe(RecordingExtractor(), cloud, turn, headings=3, pass_voxels=32_000)
-    for view, rotation in zip(views, heading_turns(turn, 3), strict=True):
+    rotations = heading_turns(np.array([0.0, 0.0, 1.0]), 3)
+    views = describe(RecordingExtractor(), cloud.points, rotations, voxels=100, pass_voxels=32_000)
+    for view, rotation in zip(views, rotations, strict=True):
         assert np.allclose(view.keypoints, cloud.points)
         # the features saw the cloud turned to that heading
         assert np.allclose(view.features, cloud.points @ rotation.T, atol=1e-6)

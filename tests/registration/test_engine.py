@@ -82,6 +82,7 @@ def test_a_library_shape_under_a_known_pose_is_recovered(engine: Engine) -> None
     assert result.candidates[0].model_id == "proc-0008"
     assert set(result.timings_ms) == {
         "validate",
+        "orient",
         "features",
         "shortlist",
         "match_ransac",

@@ -12,7 +12,9 @@ from catalign.registration.validation import (
     DENSE_POINTS,
     FAR_RADIUS_M,
     FINE_CELLS,
+    MAX_RECEIVED_VOXELS,
     MAX_VOXELS,
+    MIN_VOXELS,
     validate_cloud,
 )
 
@@ -171,5 +173,19 @@ def test_refuses_a_volume_of_random_points_quickly(rng, count: int):
     """Random points filling a 2 m cube (the denial of service: minutes and 10 GB before) are
     more voxels than any chair view, and refused before any feature is computed."""
     cube = rng.uniform(0.0, 2.0, size=(count, 3))
-    with pytest.raises(InvalidInputError, match=f"at most {MAX_VOXELS}"):
+    with pytest.raises(InvalidInputError, match=f"at most {MAX_RECEIVED_VOXELS}"):
         validate_cloud(cube, voxel_size=VOXEL)
+
+
+def test_what_is_left_to_describe_is_bounded_after_cleanup(rng):
+    """A cloud may arrive with floor around the chair (up to MAX_RECEIVED_VOXELS), but what
+    is left once the floor is set aside must fit the features' budget (MAX_VOXELS)."""
+    slab = rng.uniform(0.0, 2.0, size=(25_000, 3)) * np.array([1.0, 1.0, 0.5])
+    cloud = validate_cloud(slab, voxel_size=VOXEL)
+    assert MAX_VOXELS < cloud.voxels <= MAX_RECEIVED_VOXELS
+    with pytest.raises(InvalidInputError, match=f"at most {MAX_VOXELS}"):
+        cloud.without(np.zeros(len(cloud.points), dtype=bool), VOXEL, MIN_VOXELS)
+    low = cloud.points[:, 2] < 0.1
+    kept = cloud.without(~low, VOXEL, MIN_VOXELS)
+    assert kept.set_aside == cloud.set_aside + int((~low).sum())
+    assert kept.voxels <= MAX_VOXELS

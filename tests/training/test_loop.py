@@ -113,7 +113,7 @@ def test_corrupt_weights_are_refused(tmp_path, monkeypatch) -> None:
     train(config, shapes, val_ids=["proc-0020"], progress=False)
     weights = config.out / WEIGHTS_FILE
     weights.write_bytes(weights.read_bytes()[:-10] + b"0123456789")
-    with pytest.raises(ConfigError, match="does not match its model card"):
+    with pytest.raises(ConfigError, match="does not match its card"):
         load_model(config.out)
     card = json.loads((config.out / CARD_FILE).read_text())
     assert card["architecture"]["name"] == "ResUNetSmall"

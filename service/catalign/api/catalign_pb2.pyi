@@ -29,7 +29,7 @@ class Candidate(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., score: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside")
+    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated")
     class TimingsMsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -48,6 +48,8 @@ class RegisterReply(_message.Message):
     TIMINGS_MS_FIELD_NUMBER: _ClassVar[int]
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     POINTS_SET_ASIDE_FIELD_NUMBER: _ClassVar[int]
+    UP_FIELD_NUMBER: _ClassVar[int]
+    UP_ESTIMATED_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     pose: _containers.RepeatedScalarFieldContainer[float]
     scale: float
@@ -59,7 +61,9 @@ class RegisterReply(_message.Message):
     timings_ms: _containers.ScalarMap[str, float]
     request_id: str
     points_set_aside: int
-    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ...) -> None: ...
+    up: _containers.RepeatedScalarFieldContainer[float]
+    up_estimated: bool
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()

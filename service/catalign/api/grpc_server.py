@@ -67,6 +67,8 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                 num_inliers=result.num_inliers,
                 inlier_ratio=result.inlier_ratio,
                 points_set_aside=result.points_set_aside,
+                up=[] if result.up is None else [float(v) for v in result.up],
+                up_estimated=result.up_estimated,
                 candidates=[
                     catalign_pb2.Candidate(model_id=c.model_id, score=c.score)
                     for c in result.candidates

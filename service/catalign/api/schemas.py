@@ -30,6 +30,7 @@ JsonData = TypeAliasType(
 StrictFloat = Annotated[float, Strict()]  # ints pass, strings and booleans do not
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+Row3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class RegisterOptions(BaseModel):
@@ -105,12 +106,20 @@ class RegisterResponse(BaseModel):
     num_inliers: int
     inlier_ratio: float
     points_set_aside: int = Field(
-        description="Points of the query farther than 3 m from its median, dropped before "
-        "registering (stray sensor returns); the statistics are over the points kept."
+        description="Points of the query dropped before registering: those farther than 3 m "
+        "from its median (stray sensor returns), the floor under the chair and small clusters "
+        "detached from it; the statistics are over the points kept."
+    )
+    up: Row3 | None = Field(
+        description="The up direction (unit, query frame) the pose was searched under: the "
+        "request's, or estimated from the cloud when it gave none; null for a free search."
+    )
+    up_estimated: bool = Field(
+        description="True when the request gave no up and the service estimated it."
     )
     candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
     timings_ms: dict[str, float] = Field(
-        description="Milliseconds per stage (queue, validate, features, shortlist, "
+        description="Milliseconds per stage (queue, validate, orient, features, shortlist, "
         "match_ransac, verify, icp_score, read for files) and the total."
     )
     request_id: str
@@ -126,6 +135,8 @@ class RegisterResponse(BaseModel):
             num_inliers=result.num_inliers,
             inlier_ratio=result.inlier_ratio,
             points_set_aside=result.points_set_aside,
+            up=None if result.up is None else [float(v) for v in result.up],
+            up_estimated=result.up_estimated,
             candidates=[
                 CandidatePublic(model_id=c.model_id, score=c.score) for c in result.candidates
             ],

@@ -12,12 +12,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from catalign.features.orientation import heading_of
+from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.se3 import rotation_error_deg, transform, translation_error
+from catalign.registration.base import Orientation
+from catalign.registration.gravity import leveller
 
 RRE_THRESHOLDS_DEG = (10.0, 20.0, 30.0)
 RTE_THRESHOLDS_M = (0.05, 0.10)
 MATCH_TAU_M = 0.05
+# Proposal quality: an estimated up within this of the truth, a heading within half a bin of
+# the features' 45-degree headings.
+UP_TOLERANCE_DEG = 15.0
+HEADING_TOLERANCE_DEG = 22.5
 
 
 @dataclass(frozen=True)
@@ -65,3 +73,32 @@ def success_rates(errors: list[PoseError]) -> dict[str, float]:
     rates = {f"RRE<{t:g}": float((rre < t).mean() * 100) for t in RRE_THRESHOLDS_DEG}
     rates |= {f"RTE<{t * 100:g}cm": float((rte < t).mean() * 100) for t in RTE_THRESHOLDS_M}
     return rates
+
+
+def proposal_hits(
+    orientations: tuple[Orientation, ...], rotation_gt: np.ndarray
+) -> dict[str, bool | None]:
+    """Whether the true up (of the observed chair under ``rotation_gt``) is within
+    :data:`UP_TOLERANCE_DEG` of the first and of any of the first three estimated ups, and the
+    true heading within :data:`HEADING_TOLERANCE_DEG` of the first and of either of the first
+    two proposed headings, under the searched up nearest the true one (a miss when none is
+    within the up tolerance). None where nothing was estimated or proposed."""
+    true_up = rotation_gt @ MODEL_UP
+    ups = [o for o in orientations if o.up is not None]
+    angles = [np.degrees(np.arccos(np.clip(o.up @ true_up, -1.0, 1.0))) for o in ups]
+    estimated = bool(ups) and not ups[0].given
+    hits: dict[str, bool | None] = {
+        "up@1": bool(angles[0] <= UP_TOLERANCE_DEG) if estimated else None,
+        "up@3": bool(min(angles[:3]) <= UP_TOLERANCE_DEG) if estimated else None,
+        "heading@1": None,
+        "heading@2": None,
+    }
+    if not ups or not ups[0].headings_proposed:
+        return hits
+    nearest = int(np.argmin(angles))
+    if angles[nearest] > UP_TOLERANCE_DEG:
+        return hits | {"heading@1": False, "heading@2": False}
+    truth = heading_of(leveller(ups[nearest].up) @ rotation_gt)
+    off = [abs(np.angle(np.exp(1j * (h - truth)))) for h in ups[nearest].headings]
+    near = [np.degrees(o) <= HEADING_TOLERANCE_DEG for o in off]
+    return hits | {"heading@1": bool(near[0]), "heading@2": bool(any(near[:2]))}

@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from catalign.data.shapes import Shape, SharedChairs, to_metric
 from catalign.data.views import Floor, PoseMode, random_camera, random_object_pose, render_view
+from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
@@ -44,9 +45,14 @@ class TestCase:
 
 @dataclass(frozen=True)
 class CaseOutcome:
+    """A case and its answer; ``result`` is None when the method refused the view (too little
+    of the chair in sight, too large a cloud), which counts as a failure, with the reason in
+    ``refused``."""
+
     case: TestCase
-    result: RegistrationResult
+    result: RegistrationResult | None
     seconds: float
+    refused: str | None = None
 
 
 def metric_shapes(chairs: SharedChairs, ids: Sequence[str]) -> dict[str, Shape]:
@@ -93,8 +99,11 @@ def run_cases(
     outcomes = []
     for case in tqdm(cases, desc=f"{registrar.name} {label}".strip(), unit="case"):
         started = time.perf_counter()
-        result = registrar.register(case.points, seed=seed)
-        outcomes.append(CaseOutcome(case, result, time.perf_counter() - started))
+        try:
+            result, refused = registrar.register(case.points, seed=seed), None
+        except (DegenerateInputError, InvalidInputError) as error:
+            result, refused = None, str(error)
+        outcomes.append(CaseOutcome(case, result, time.perf_counter() - started, refused))
     return outcomes
 
 

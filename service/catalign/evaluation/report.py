@@ -1,4 +1,6 @@
-"""Turn case outcomes into the paper's table: success rates, MatchAcc, retrieval and timing."""
+"""Turn case outcomes into the paper's table: success rates, MatchAcc, retrieval, the
+orientation proposals' quality (share of views whose true up and heading were proposed), and
+timing."""
 
 from __future__ import annotations
 
@@ -8,13 +10,17 @@ from typing import Any
 import numpy as np
 
 from catalign.evaluation.metrics import (
+    PoseError,
     canonical_pose_error,
     match_accuracy,
+    proposal_hits,
     success_rates,
 )
 from catalign.evaluation.protocol import CaseOutcome
 from catalign.geometry.ncc import NCCFrame
 
+# A refused view (too little of the chair in sight) fails every threshold.
+REFUSED = PoseError(rre_deg=180.0, rte_m=float("inf"))
 COLUMNS = (
     "RRE<10",
     "RRE<20",
@@ -23,6 +29,10 @@ COLUMNS = (
     "RTE<10cm",
     "MatchAcc",
     "top-1",
+    "up@1",
+    "up@3",
+    "heading@1",
+    "heading@2",
     "s/query median",
     "s/query p95",
 )
@@ -35,9 +45,13 @@ def summarise(
 
     ``frames`` holds the NCC frame of every shape involved (observed and library).
     """
-    errors, accuracies, cases = [], [], []
+    errors, accuracies, cases, hits = [], [], [], []
     for outcome in outcomes:
         case, result = outcome.case, outcome.result
+        if result is None:
+            errors.append(REFUSED)
+            cases.append({"case": case.case_id, "model_id": None, "refused": outcome.refused})
+            continue
         model_frame, observed_frame = frames[result.model_id], frames[case.shape_id]
         error = canonical_pose_error(result.pose, model_frame, case.pose, observed_frame)
         errors.append(error)
@@ -47,6 +61,8 @@ def summarise(
                 *result.correspondences, model_frame, case.pose, observed_frame
             )
             accuracies.append(accuracy)
+        hit = proposal_hits(result.orientations, case.pose[:3, :3])
+        hits.append(hit)
         cases.append(
             {
                 "case": case.case_id,
@@ -57,15 +73,25 @@ def summarise(
                 "fitness": result.fitness,
                 "seconds": outcome.seconds,
             }
+            | hit
         )
     seconds = np.array([o.seconds for o in outcomes])
     row: dict[str, Any] = {"setting": setting, "cases": len(outcomes)} | success_rates(errors)
+    row["refused"] = sum(o.result is None for o in outcomes)
     row["MatchAcc"] = float(np.mean(accuracies) * 100) if accuracies else None
     row["top-1"] = (
-        float(np.mean([o.result.model_id == o.case.shape_id for o in outcomes]) * 100)
+        float(
+            np.mean(
+                [o.result is not None and o.result.model_id == o.case.shape_id for o in outcomes]
+            )
+            * 100
+        )
         if setting == "same"
         else None
     )
+    for column in ("up@1", "up@3", "heading@1", "heading@2"):
+        known = [h[column] for h in hits if h[column] is not None]
+        row[column] = float(np.mean(known) * 100) if known else None
     row["s/query median"] = float(np.median(seconds))
     row["s/query p95"] = float(np.percentile(seconds, 95))
     return {"row": row, "cases": cases}

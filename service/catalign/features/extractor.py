@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from catalign.features.orientation import OrientationProposer, find_orientation
 from catalign.paths import DEFAULT_MODEL_DIR
 
 
@@ -29,11 +30,13 @@ class Described:
 
 class FeatureExtractor(Protocol):
     """What registration and the library need of an extractor: its voxel size, its fingerprint,
-    how many headings a query must be described at, and the description itself."""
+    how many headings a query must be described at, the orientation proposals that choose them
+    (None: every heading, and no up is proposed), and the description itself."""
 
     voxel_size: float
     fingerprint: str
     headings: int
+    orientation: OrientationProposer | None
 
     def describe(self, points: np.ndarray) -> Described: ...
 
@@ -45,7 +48,7 @@ class LearnedExtractor:
 
     ``headings`` is how many headings a query must be tried at: 8 for a model trained on
     ``yaw-bin`` rotations (it only knows headings within 22.5 degrees), 4 for ``yaw-quarter``,
-    else 1.
+    else 1. ``orientation`` is the proposer in the folder's ``orientation/`` when it has one.
     """
 
     def __init__(self, model_dir: Path | None = None, threads: int | None = None) -> None:
@@ -57,6 +60,7 @@ class LearnedExtractor:
         self.fingerprint = str(self.card["sha256"])
         rotation = self.card.get("training", {}).get("rotation", "upright")
         self.headings = YAW_BINS.get(rotation, 1)
+        self.orientation = find_orientation(model_dir or DEFAULT_MODEL_DIR)
         if threads is not None:
             torch.set_num_threads(threads)
 
@@ -76,6 +80,7 @@ class FPFHExtractor:
     """Open3D's FPFH (33-D) on a voxel-down-sampled cloud: normals within 2 voxels, FPFH 5."""
 
     headings = 1  # rotation-invariant: one heading describes every heading
+    orientation = None
 
     def __init__(self, voxel_size: float = 0.025) -> None:
         self.voxel_size = voxel_size

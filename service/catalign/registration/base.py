@@ -30,12 +30,30 @@ class Candidate:
 
 
 @dataclass(frozen=True)
+class Orientation:
+    """One way up a query was searched: ``up`` in the observation frame (None: a free search),
+    whether the caller gave it, the ``headings`` (radians about ``up``, the yaw that turns the
+    models' canonical frame onto the levelled query) it was described at, best first, and
+    whether they were proposed (else they are evenly spaced), and the belief in the up: the
+    proposal's probability mass (1 for a given up or a floor under the cloud)."""
+
+    up: np.ndarray | None
+    given: bool
+    headings: tuple[float, ...]
+    headings_proposed: bool = False
+    belief: float = 1.0
+
+
+@dataclass(frozen=True)
 class RegistrationResult:
     """The answer to one query.
 
     ``correspondences`` holds the putative matches (query points, model points) the pose was
     estimated from, when the method exposes them; evaluation turns them into MatchAcc.
-    ``points_set_aside`` counts the caller's points dropped as far outliers before registering.
+    ``points_set_aside`` counts the caller's points dropped before registering (far outliers,
+    floor, detached clusters). ``orientations`` are the ways up the query was searched, best
+    proposal first, and ``orientation`` the one the answer was found under (None for methods
+    that do not orient the query).
     """
 
     model_id: str
@@ -49,6 +67,18 @@ class RegistrationResult:
     correspondences: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     scale: float = 1.0
     points_set_aside: int = 0
+    orientations: tuple[Orientation, ...] = field(default=(), repr=False)
+    orientation: Orientation | None = None
+
+    @property
+    def up(self) -> np.ndarray | None:
+        """The up direction the answer was found under (None: a free search)."""
+        return None if self.orientation is None else self.orientation.up
+
+    @property
+    def up_estimated(self) -> bool:
+        """Whether that up was estimated from the cloud rather than given."""
+        return self.up is not None and not self.orientation.given
 
 
 class Registrar(ABC):

@@ -55,6 +55,15 @@ class EngineConfig(BaseModel):
     """How far the chair's up may tilt from the given ``up`` in the three-point search."""
     min_points: int = Field(default=MIN_VOXELS, ge=1)
     """Occupied voxels a query needs."""
+    up_proposals: int = Field(default=3, ge=1)
+    """Without ``up``: proposed up directions the gravity-aware search runs under (the best
+    verified pose wins)."""
+    up_belief_power: float = Field(default=0.3, ge=0)
+    """Without ``up``: a pose's verification score is multiplied by the proposal's belief in
+    its up (probability mass) to this power (0: verification alone chooses the up)."""
+    heading_proposals: int | None = Field(default=2, ge=1)
+    """Proposed headings the query is described at, under each up (None: every heading of
+    the extractor)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
     models."""

@@ -1,13 +1,14 @@
-"""Describing the query: its key points and features at every heading the features need.
+"""Describing the query: its key points and features at the headings it is tried at.
 
 Library models share the category's canonical frame (+Y up, :data:`~catalign.frames.MODEL_UP`),
 and features trained on ``yaw-bin`` rotations only know headings within half a bin of it. So
-the query is first turned so that the caller's ``up`` becomes +Y (a :func:`leveller` turn; no
-turn without ``up``) and then described at ``headings`` headings about +Y, evenly spaced (8,
-45 degrees apart, for the shipped model; 1 for rotation-invariant features). The headings
-share forward passes, as many per pass as ``pass_voxels`` allows: one pass for a typical view,
-several for the largest queries, whose memory they bound (about 5 KB per voxel at the peak of
-a pass). Key points are turned back, so every later stage works in the observation frame.
+the query is described after rotations that level it (its up onto +Y) and turn it about +Y:
+the proposed headings of :mod:`~catalign.registration.orient`, or, without proposals,
+:func:`even_headings` (8, 45 degrees apart, for the shipped model; 1 for
+rotation-invariant features). The rotations share forward passes, as many per pass as
+``pass_voxels`` allows: one pass for a typical view, several for the largest queries, whose
+memory they bound (about 5 KB per voxel at the peak of a pass). Key points are turned back,
+so every later stage works in the observation frame.
 """
 
 from __future__ import annotations
@@ -19,7 +20,27 @@ import numpy as np
 from catalign.features.extractor import FeatureExtractor
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle
-from catalign.registration.validation import CheckedCloud
+from catalign.registration.base import Orientation
+from catalign.registration.gravity import leveller
+
+
+def turn_of(orientation: Orientation) -> np.ndarray | None:
+    """The levelling turn of an orientation (its up onto the models'); None for a free
+    search."""
+    return None if orientation.up is None else leveller(orientation.up)
+
+
+def rotations_of(orientation: Orientation) -> list[np.ndarray]:
+    """The rotations (observation -> a heading of the canonical frame) that describe the
+    query at each of the orientation's headings."""
+    turn = turn_of(orientation)
+    turn = np.eye(3) if turn is None else turn
+    return [axis_angle(MODEL_UP, -heading) @ turn for heading in orientation.headings]
+
+
+def even_headings(count: int) -> tuple[float, ...]:
+    """``count`` headings evenly spaced over the full turn, from zero."""
+    return tuple(2 * np.pi * k / count for k in range(count))
 
 
 @dataclass(frozen=True)
@@ -30,29 +51,22 @@ class QueryView:
     features: np.ndarray
 
 
-def heading_turns(turn: np.ndarray | None, headings: int) -> list[np.ndarray]:
-    """The rotations that take the observation to each heading: ``turn`` (the levelling, or
-    none), then ``k / headings`` of a full turn about the models' up, for each ``k``."""
-    turn = np.eye(3) if turn is None else turn
-    return [axis_angle(MODEL_UP, -2 * np.pi * k / headings) @ turn for k in range(headings)]
-
-
 def describe(
     extractor: FeatureExtractor,
-    cloud: CheckedCloud,
-    turn: np.ndarray | None,
+    points: np.ndarray,
+    rotations: list[np.ndarray],
     *,
-    headings: int,
+    voxels: int,
     pass_voxels: int,
 ) -> list[QueryView]:
-    """The query described at every heading (:func:`heading_turns`), key points back in the
-    observation frame, with at most ``pass_voxels`` query voxels per forward pass (at least
-    one heading per pass)."""
-    rotations = heading_turns(turn, headings)
-    per_pass = max(1, pass_voxels // cloud.voxels)
+    """The query ``points`` (occupying about ``voxels`` voxels) described after each of the
+    ``rotations`` (observation -> a heading of the canonical frame, as :func:`rotations_of`
+    gives them), key points back in the observation frame, with at most ``pass_voxels`` query
+    voxels per forward pass (at least one rotation per pass)."""
+    per_pass = max(1, pass_voxels // max(voxels, 1))
     described = []
     for first in range(0, len(rotations), per_pass):
-        turned = [cloud.points @ r.T for r in rotations[first : first + per_pass]]
+        turned = [points @ r.T for r in rotations[first : first + per_pass]]
         described += extractor.describe_many(turned)
     return [
         QueryView(d.keypoints @ r, d.features) for d, r in zip(described, rotations, strict=True)

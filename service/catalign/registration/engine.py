@@ -4,24 +4,32 @@
 stage names the HTTP answer's ``timings_ms`` documents (two steps may share a name):
 
 1. **validate** (:mod:`~catalign.registration.validation`): finite, enough occupied voxels,
-   neither a line nor a plane; ``up`` becomes the turn that levels the query;
-2. **describe** (:mod:`~catalign.registration.describe`, timed as ``features``): the levelled
-   query's key points and features at every heading the features need;
-3. **shortlist** (:mod:`~catalign.registration.shortlist`): the ``top_k`` library models most
-   like the query, by global descriptor, size and height;
-4. **match** (:mod:`~catalign.registration.match`, ``match_ransac``): the ``keep_headings``
-   headings whose features agree best with the leading candidates', then every candidate's
-   mutual nearest neighbours at them;
-5. **hypothesise** (:mod:`~catalign.registration.hypothesise`, ``match_ransac``): poses from the
-   matches, the two-point search with ``up``, the three-point RANSAC otherwise;
-6. **verify** (:mod:`~catalign.registration.verify`): poses scored by the query they explain
-   times the model surface they cover, nudged by the layout with ``up``;
-7. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
-   poses, scored again the same way; the best wins;
-8. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with ``up``, a
+   neither a line nor a plane; far points are set aside;
+2. **orient** (:mod:`~catalign.registration.orient`): the ways up the query may stand (the
+   given ``up``, or the proposed ones), the floor under it, and the headings each is described
+   at (proposed, or every heading without a proposer); the floor, then small clusters
+   detached from the chair (:mod:`~catalign.registration.cleanup`), are set aside;
+3. **describe** (:mod:`~catalign.registration.describe`, timed as ``features``): key points and
+   features at every heading of every orientation, in shared forward passes;
+4. under each orientation (:meth:`Engine._search`):
+
+   * **shortlist** (:mod:`~catalign.registration.shortlist`): the ``top_k`` library models
+     most like the query, by global descriptor, size and height;
+   * **match** (:mod:`~catalign.registration.match`, ``match_ransac``): the ``keep_headings``
+     headings whose features agree best with the leading candidates', then every candidate's
+     mutual nearest neighbours at them;
+   * **hypothesise** (:mod:`~catalign.registration.hypothesise`, ``match_ransac``): poses from
+     the matches, the two-point search with an up, the three-point RANSAC otherwise;
+   * **verify** (:mod:`~catalign.registration.verify`): poses scored by the query they explain
+     times the model surface they cover, nudged by the layout with an up;
+
+5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
+   poses of all orientations, scored again the same way; the best wins;
+6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent;
-9. **answer**: model, pose, fit statistics, and each candidate's best verification score.
+7. **answer**: model, pose, fit statistics, the up it was found under, and each candidate's
+   best verification score.
 
 Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
 turns it into the stages' keyword arguments, and the stages keep their own per-model caches.
@@ -32,6 +40,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import TypeVar
 
 import numpy as np
@@ -44,17 +54,22 @@ from catalign.geometry.distance_grid import CELL_VOXELS
 from catalign.geometry.se3 import scale_of
 from catalign.library.index import Library
 from catalign.registration.alignment import point_cloud
-from catalign.registration.base import RegistrationResult
+from catalign.registration.base import Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
+from catalign.registration.cleanup import detached_mask
 from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.describe import describe
-from catalign.registration.gravity import leveller
+from catalign.registration.describe import QueryView, describe, rotations_of, turn_of
 from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher, probe_rows
+from catalign.registration.orient import orient
 from catalign.registration.refine import Refiner
 from catalign.registration.shortlist import shortlist
-from catalign.registration.validation import CheckedCloud, validate_cloud
-from catalign.registration.verify import Scored, Verifier, best_per_model
+from catalign.registration.validation import (
+    MAX_RECEIVED_VOXELS,
+    CheckedCloud,
+    validate_cloud,
+)
+from catalign.registration.verify import QueryChecks, Scored, Verifier, best_per_model
 
 T = TypeVar("T")
 
@@ -116,36 +131,99 @@ class Engine:
         :class:`~catalign.errors.DeadlineExceededError`.
         """
         config, clock = self.config, _Clock(deadline)
-        # Validate the cloud (and bound every later step's work); level it when up is known.
+        voxel = self.extractor.voxel_size
+        # Validate the cloud (and bound every later step's work).
         with clock("validate"):
             cloud = validate_cloud(
                 points,
-                voxel_size=self.extractor.voxel_size,
+                voxel_size=voxel,
                 min_points=config.min_points,
                 fine_cells=config.fine_cells,
             )
-            turn = None if up is None else leveller(up)
 
-        # Describe the query at every heading; fix the probe key points that rank everything.
-        with clock("features"):
-            views = describe(
-                self.extractor, cloud, turn, headings=self.headings, pass_voxels=config.pass_voxels
+        # Orient: the ways up it may stand (given, or proposed), the floor under it, headings;
+        # the floor, then small clusters detached from the chair, are set aside.
+        with clock("orient"):
+            oriented = orient(
+                cloud.points,
+                up,
+                self.extractor.orientation,
+                headings=self.headings,
+                up_proposals=config.up_proposals,
+                heading_proposals=config.heading_proposals,
+                voxel=voxel,
             )
-            keypoints = views[0].keypoints
-            probes = probe_rows(len(keypoints), config.probe_points, seed)
+            cloud = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
+            cloud = cloud.without(detached_mask(cloud.points), voxel, config.min_points)
 
+        # Describe the query at every heading of every orientation, in shared forward passes.
+        with clock("features"):
+            rotations = [r for o in oriented.orientations for r in rotations_of(o)]
+            views = describe(
+                self.extractor,
+                cloud.points,
+                rotations,
+                voxels=cloud.voxels,
+                pass_voxels=config.pass_voxels,
+            )
+            searches = _searches(
+                oriented.orientations, views, config.probe_points, config.up_belief_power, seed
+            )
+
+        # Search under each orientation: shortlist, match, hypothesise and verify.
+        k = config.top_k if top_k is None else top_k
+        found = [
+            (search, item)
+            for search in searches
+            for item in self._search(search, k, estimate_scale, seed, clock)
+        ]
+        found.sort(key=lambda pair: -pair[1].score)
+        if not found:
+            raise DegenerateInputError(
+                "no pose fits this cloud: its features matched no library model consistently "
+                "(is it a whole object, in metres?)"
+            )
+
+        # Refine the best poses by ICP and score them again; the best one wins.
+        with clock("icp_score"):
+            refined = []
+            for search, item in found[: config.refine]:
+                pose = self.refiner.refine(item.hypothesis, search.query)
+                refined.append((search, search.weighed(self.verifier.score(pose, search.checks))))
+            search, best = max(refined, key=lambda pair: pair[1].score)
+            winner = best.hypothesis
+            fit = self.refiner.fit(winner, search.query)
+
+        # Category fit: another instance (a loose fit, up known) gets the observed chair's frame.
+        turn = search.turn
+        if turn is not None and not estimate_scale and fit.fitness < config.exact_fitness:
+            with clock("icp_score"):
+                winner = self.category_fitter.fit(winner, search.query, search.keypoints, turn)
+                fit = self.refiner.fit(winner, search.query)
+
+        # Answer: the winner, its fit, and every candidate's best score.
+        tried = [item for _, item in refined] + [item for _, item in found[config.refine :]]
+        candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
+        result = self._answer(winner, fit, cloud, search, candidates, tried, clock.timings)
+        return replace(result, orientations=tuple(oriented.orientations))
+
+    def _search(
+        self, search: _Search, k: int | None, estimate_scale: bool, seed: int, clock: _Clock
+    ) -> list[Scored]:
+        """The verified poses of the query under one orientation, best first; ``search``
+        records its shortlist and its verification checks."""
+        turn = search.turn
         # Shortlist the models most like the query, best first.
         with clock("shortlist"):
-            k = config.top_k if top_k is None else top_k
-            candidates = shortlist(self.library, views, k, turn)
+            search.candidates = shortlist(self.library, search.views, k, turn)
 
         # Match: keep the headings the leading candidates agree with, match every candidate there.
         with clock("match_ransac"):
-            leading = candidates[: config.heading_models]
-            views = self.matcher.choose_headings(leading, views, probes, turn, seed)
+            leading = search.candidates[: self.config.heading_models]
+            views = self.matcher.choose_headings(leading, search.views, search.probes, turn, seed)
             matches = [
                 self.matcher.match(model_id, view, seed)
-                for model_id in clock.each(candidates)
+                for model_id in clock.each(search.candidates)
                 for view in views
             ]
 
@@ -161,46 +239,22 @@ class Engine:
 
         # Verify: every pose by the query it explains, the best also by coverage and layout.
         with clock("verify"):
-            checks = self.verifier.query_checks(keypoints, probes, turn)
-            scored = self.verifier.rank(hypotheses, checks)
-        if not scored:
-            raise DegenerateInputError(
-                "no pose fits this cloud: its features matched no library model consistently "
-                "(is it a whole object, in metres?)"
-            )
-
-        # Refine the best poses by ICP and score them again; the best one wins.
-        with clock("icp_score"):
-            query = point_cloud(keypoints)
-            refined = [
-                self.verifier.score(self.refiner.refine(item.hypothesis, query), checks)
-                for item in scored[: config.refine]
-            ]
-            winner = max(refined, key=lambda item: item.score).hypothesis
-            fit = self.refiner.fit(winner, query)
-
-        # Category fit: another instance (a loose fit, up known) gets the observed chair's frame.
-        if turn is not None and not estimate_scale and fit.fitness < config.exact_fitness:
-            with clock("icp_score"):
-                winner = self.category_fitter.fit(winner, query, keypoints, turn)
-                fit = self.refiner.fit(winner, query)
-
-        # Answer: the winner, its fit, and every candidate's best score.
-        tried = refined + scored[config.refine :]
-        return self._answer(winner, fit, cloud, keypoints, candidates, tried, clock.timings)
+            search.checks = self.verifier.query_checks(search.keypoints, search.probes, turn)
+            return [search.weighed(item) for item in self.verifier.rank(hypotheses, search.checks)]
 
     def _answer(
         self,
         winner: Hypothesis,
         fit: o3d.pipelines.registration.RegistrationResult,
         cloud: CheckedCloud,
-        keypoints: np.ndarray,
+        search: _Search,
         candidates: list[str],
         tried: list[Scored],
         timings: dict[str, float],
     ) -> RegistrationResult:
-        """The result for ``winner``: Open3D's ``fit`` statistics on the query's key points,
-        the candidates' best scores among the poses ``tried``, and the matches of the pose."""
+        """The result for ``winner``, found in ``search``: Open3D's ``fit`` statistics on the
+        query's key points, the candidates' best scores among the poses ``tried``, and the
+        matches of the pose."""
         num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
             model_id=winner.model_id,
@@ -208,7 +262,7 @@ class Engine:
             fitness=float(fit.fitness),
             inlier_rmse=float(fit.inlier_rmse),
             num_inliers=num_inliers,
-            inlier_ratio=num_inliers / len(keypoints),
+            inlier_ratio=num_inliers / len(search.keypoints),
             candidates=best_per_model(candidates, tried),
             timings_ms=timings,
             correspondences=(
@@ -217,7 +271,55 @@ class Engine:
             ),
             scale=scale_of(winner.transform),
             points_set_aside=cloud.set_aside,
+            orientation=search.orientation,
         )
+
+
+@dataclass(eq=False)
+class _Search:
+    """The query under one orientation: its views (one per heading), the key points and probe
+    rows that verification uses, and, once searched, its shortlist and checks."""
+
+    orientation: Orientation
+    views: list[QueryView]
+    probes: np.ndarray
+    up_belief_power: float
+    candidates: list[str] = field(default_factory=list)
+    checks: QueryChecks | None = None
+
+    def weighed(self, item: Scored) -> Scored:
+        """A verified pose found under this orientation, its score weighed by the belief in
+        the orientation's up (verification alone prefers an upside-down chair too often)."""
+        return Scored(item.hypothesis, item.score * self.orientation.belief**self.up_belief_power)
+
+    @property
+    def keypoints(self) -> np.ndarray:
+        return self.views[0].keypoints
+
+    @cached_property
+    def turn(self) -> np.ndarray | None:
+        return turn_of(self.orientation)
+
+    @cached_property
+    def query(self) -> o3d.geometry.PointCloud:
+        return point_cloud(self.keypoints)
+
+
+def _searches(
+    orientations: list[Orientation],
+    views: list[QueryView],
+    probe_points: int,
+    up_belief_power: float,
+    seed: int,
+) -> list[_Search]:
+    """``views`` (in the order of the orientations' rotations) split by orientation."""
+    searches, first = [], 0
+    for orientation in orientations:
+        mine = views[first : first + len(orientation.headings)]
+        first += len(orientation.headings)
+        probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
+        searches.append(_Search(orientation, mine, probes, up_belief_power))
+    return searches
 
 
 class _Clock:

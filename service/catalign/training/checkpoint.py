@@ -64,34 +64,55 @@ def sha256_of(path: Path) -> str:
 
 def export_model(directory: Path, model: ResUNet2, card: dict[str, Any]) -> dict[str, Any]:
     """Write ``model.safetensors`` and ``model_card.json``; return the card with its sha256."""
+    metadata = {"model_config": json.dumps(model.config)}
+    return export_weights(directory, model, card, WEIGHTS_FILE, CARD_FILE, metadata)
+
+
+def export_weights(
+    directory: Path,
+    model: torch.nn.Module,
+    card: dict[str, Any],
+    weights_file: str,
+    card_file: str,
+    metadata: dict[str, str] | None = None,
+) -> dict[str, Any]:
+    """Write a model's weights (safetensors) and its card, which records the architecture
+    (``model.config``) and the weights' sha256; return the card."""
     directory.mkdir(parents=True, exist_ok=True)
-    weights = directory / WEIGHTS_FILE
-    tmp = directory / f".{WEIGHTS_FILE}.tmp"
+    weights = directory / weights_file
+    tmp = directory / f".{weights_file}.tmp"
     state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
-    save_file(state, str(tmp), metadata={"model_config": json.dumps(model.config)})
+    save_file(state, str(tmp), metadata=metadata)
     tmp.replace(weights)
     card = card | {
         "architecture": model.config,
-        "weights": WEIGHTS_FILE,
+        "weights": weights_file,
         "sha256": sha256_of(weights),
     }
-    atomic_write_bytes(directory / CARD_FILE, json.dumps(card, indent=2).encode())
+    atomic_write_bytes(directory / card_file, json.dumps(card, indent=2).encode())
+    return card
+
+
+def verified_card(directory: Path, weights_file: str, card_file: str) -> dict[str, Any]:
+    """The card of the weights in ``directory``, after checking that the weights' sha256 is
+    the one it records (a corrupt or replaced file is refused)."""
+    card_path, weights = directory / card_file, directory / weights_file
+    if not card_path.is_file() or not weights.is_file():
+        raise ConfigError(f"no model in {directory}: expected {card_file} and {weights_file}")
+    card = json.loads(card_path.read_text())
+    actual = sha256_of(weights)
+    if card.get("sha256") != actual:
+        raise ConfigError(
+            f"{weights} does not match its card (sha256 {actual[:12]}..., card says "
+            f"{str(card.get('sha256'))[:12]}...): the weights file is corrupt or was replaced"
+        )
     return card
 
 
 def load_model(directory: Path) -> tuple[ResUNet2, dict[str, Any]]:
     """The shipped model in eval mode and its card; the weights' sha256 must match the card."""
-    card_path, weights = directory / CARD_FILE, directory / WEIGHTS_FILE
-    if not card_path.is_file() or not weights.is_file():
-        raise ConfigError(f"no model in {directory}: expected {CARD_FILE} and {WEIGHTS_FILE}")
-    card = json.loads(card_path.read_text())
-    actual = sha256_of(weights)
-    if card.get("sha256") != actual:
-        raise ConfigError(
-            f"{weights} does not match its model card (sha256 {actual[:12]}..., card says "
-            f"{str(card.get('sha256'))[:12]}...): the weights file is corrupt or was replaced"
-        )
+    card = verified_card(directory, WEIGHTS_FILE, CARD_FILE)
     model = build_model(**card["architecture"])
-    model.load_state_dict(load_file(str(weights)))
+    model.load_state_dict(load_file(str(directory / WEIGHTS_FILE)))
     model.eval()
     return model, card

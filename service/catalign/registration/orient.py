@@ -1,0 +1,142 @@
+"""Orienting the query: which ways up it may stand, and at which headings to describe it.
+
+Library models share the category's canonical frame, and the learned features only know
+headings within half a bin of it, so the query must be turned towards that frame before it is
+described. This stage decides how, from the caller's ``up`` and the orientation proposals of
+:mod:`catalign.features.orientation`:
+
+* **with** ``up``: one orientation, levelled by it, described at the ``heading_proposals`` best
+  proposed headings (instead of every heading of the extractor);
+* **without** ``up``: one orientation per proposed up (``up_proposals``), each levelled by its
+  up and described at its own proposed headings; the engine searches under each and keeps the
+  best verified pose;
+* with no proposer (FPFH features, a model folder without orientation weights): the caller's
+  ``up`` and every heading, or, without ``up``, the free search.
+
+Proposed ups are snapped to the largest plane nearly perpendicular to them
+(:func:`snap_to_plane`): a seat or a floor is level to a degree or two, a proposal only to a
+few. The **floor** is found here too, because where the floor is depends on which way is up
+(:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
+proposed up that has a floor beneath the cloud. A floor is the best witness of up there is, so
+that proposal's up becomes the floor's normal and is tried first. Its points are set aside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from catalign.features.orientation import OrientationProposer
+from catalign.geometry.sampling import voxel_downsample
+from catalign.registration.base import Orientation
+from catalign.registration.cleanup import floor_mask
+from catalign.registration.describe import even_headings
+from catalign.registration.gravity import leveller
+
+# Up proposals snap to the largest plane within this angle of them (module docstring) ...
+SNAP_DEG = 15.0
+# ... found by this many three-point draws on a grid of this many voxels, with inliers within
+# a share of a voxel, and a plane must hold this share of the grid's cells (and some points).
+SNAP_DRAWS = 512
+SNAP_CELL_VOXELS = 0.8
+SNAP_TOLERANCE_VOXELS = 0.4
+SNAP_SHARE = 0.1
+SNAP_MIN_POINTS = 30
+
+
+@dataclass(frozen=True)
+class Oriented:
+    """The orientations to search, best first, and the mask of the points that are floor."""
+
+    orientations: list[Orientation]
+    floor: np.ndarray
+
+
+def orient(
+    points: np.ndarray,
+    up: np.ndarray | None,
+    proposer: OrientationProposer | None,
+    *,
+    headings: int,
+    up_proposals: int,
+    heading_proposals: int | None,
+    voxel: float,
+) -> Oriented:
+    """The orientations to search for ``points`` (module docstring). ``headings`` is what the
+    extractor needs without proposals (1 for rotation-invariant features: then no heading is
+    proposed); ``heading_proposals`` None describes every heading even with a proposer."""
+    given = up is not None
+    if given:
+        ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
+        beliefs = [1.0]
+    elif proposer is not None:
+        proposals = proposer.ups(points, up_proposals)
+        ups = [snap_to_plane(points, p.value, voxel=voxel) for p in proposals]
+        beliefs = [p.score for p in proposals]
+    else:
+        ups, beliefs = [None], [1.0]
+
+    floor = np.zeros(len(points), dtype=bool)
+    for index, candidate in enumerate(ups):
+        if candidate is None:
+            continue
+        floor = floor_mask(points, candidate, voxel=voxel)
+        if floor.any():
+            if not given:  # the floor's normal is the best up there is: tried first
+                del ups[index], beliefs[index]
+                ups.insert(0, _plane_normal(points[floor], candidate))
+                beliefs.insert(0, 1.0)
+            break
+    kept = points[~floor]
+
+    propose = proposer is not None and headings > 1 and heading_proposals is not None
+    if propose and ups[0] is not None:
+        levelled = [kept @ leveller(u).T for u in ups]
+        proposed = proposer.headings(levelled, heading_proposals)
+        orientations = [
+            Orientation(u, given, tuple(float(p.value) for p in found), True, belief)
+            for u, found, belief in zip(ups, proposed, beliefs, strict=True)
+        ]
+    else:
+        orientations = [
+            Orientation(u, given, even_headings(headings), False, belief)
+            for u, belief in zip(ups, beliefs, strict=True)
+        ]
+    return Oriented(orientations, floor)
+
+
+def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.ndarray:
+    """``up`` turned onto the normal of the largest plane of ``points`` within
+    :data:`SNAP_DEG` of it (a seat, a floor, the tops of arms), or left as it is when no such
+    plane holds :data:`SNAP_SHARE` of the cloud. A proposal is a few degrees off, a seat or a
+    floor is level to a degree or two: on the evaluation's so3 views (seed 0) the share of top
+    proposals within 5 degrees of the truth went from 48 to 70 %."""
+    cloud, _ = voxel_downsample(points, SNAP_CELL_VOXELS * voxel)
+    if len(cloud) < 3:
+        return up
+    rng = np.random.default_rng(0)
+    a, b, c = (cloud[rng.integers(0, len(cloud), SNAP_DRAWS)] for _ in range(3))
+    normals = np.cross(b - a, c - a)
+    lengths = np.linalg.norm(normals, axis=1)
+    keep = lengths > 1e-12
+    normals = normals[keep] / lengths[keep, None]
+    normals *= np.sign(normals @ up)[:, None]
+    cone = normals @ up >= np.cos(np.radians(SNAP_DEG))
+    if not cone.any():
+        return up
+    normals, through = normals[cone], a[keep][cone]
+    offsets = np.einsum("ij,ij->i", normals, through)
+    inliers = np.abs(cloud @ normals.T - offsets) < SNAP_TOLERANCE_VOXELS * voxel
+    best = int(np.argmax(inliers.sum(axis=0)))
+    if inliers[:, best].sum() < max(SNAP_MIN_POINTS, SNAP_SHARE * len(cloud)):
+        return up
+    normal = _plane_normal(cloud[inliers[:, best]], up)
+    return normal if normal @ up >= np.cos(np.radians(SNAP_DEG)) else up
+
+
+def _plane_normal(points: np.ndarray, towards: np.ndarray) -> np.ndarray:
+    """The unit normal of the plane through ``points`` (least squares), on ``towards``' side."""
+    _, _, axes = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)
+    normal = axes[-1]
+    return normal if normal @ towards >= 0 else -normal

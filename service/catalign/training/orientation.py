@@ -1,0 +1,287 @@
+"""Training the orientation proposal networks (:mod:`catalign.features.orientation`) on CPU.
+
+The data are views the evaluation could have made, of training shapes only: every shape is
+rendered ``views_per_shape`` times by a random camera, the chair upright (a share of them with
+a ring of floor kept) or in any rotation, with sensor noise. Views are rendered once and
+cached; each step then draws fresh variations of them, so a few thousand views go a long way:
+
+* for the **up** network, a random rotation of the whole view (label: the chair's up turned
+  with it) and a random number of points (a sparse sensor, a decimated scan);
+* for the **heading** network, the view levelled by its true up tilted by up to
+  ``tilt_deg`` (an imperfect up proposal, an imprecise IMU) and turned by a random yaw (label:
+  the yaw of the levelled chair).
+
+Labels are soft (a Gaussian of ``label_sigma_deg`` over the angle to the truth), and the loss is
+the cross-entropy against them. At the end, accuracy is measured on views of the validation
+chairs at a seed of their own, and written into the card beside the weights.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, Field
+from torch import Tensor
+from tqdm import tqdm
+
+from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
+from catalign.data.views import Floor, random_camera, random_object_pose, render_view
+from catalign.features.orientation import (
+    CARD_FILE,
+    HEADING_ANGLES,
+    UP_DIRECTIONS,
+    WEIGHTS_FILE,
+    OrientationModel,
+    OrientationProposer,
+    heading_of,
+    levelling,
+    load_orientation,
+    occupancy_grids,
+    yaw,
+)
+from catalign.frames import MODEL_UP
+from catalign.geometry.se3 import axis_angle, random_rotation
+from catalign.training.checkpoint import export_weights
+
+# Held-out views are rendered at their own seed, never one the evaluation uses (0, 1).
+HELD_OUT_SEED = 1_000
+
+
+class OrientationConfig(BaseModel):
+    """Everything an orientation training run depends on (``catalign train-orientation``)."""
+
+    steps: int = Field(3_000, ge=1)
+    batch_size: int = Field(64, ge=1)
+    learning_rate: float = Field(2e-3, gt=0)
+    width: int = Field(16, ge=1, description="channels of the first conv block")
+    views_per_shape: int = Field(48, ge=1)
+    procedural: int = Field(60, ge=0, description="procedural chairs added to the shared ones")
+    view_points: int = Field(2_048, ge=16, description="points kept per cached view")
+    min_points: int = Field(300, ge=16, description="fewest points a training sample keeps")
+    so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
+    floor_share: float = Field(0.25, ge=0, le=1, description="upright views with floor kept")
+    tilt_deg: float = Field(10.0, ge=0, description="error of the up the heading net is given")
+    label_sigma_deg: float = Field(10.0, gt=0)
+    seed: int = 0
+    threads: int = Field(2, ge=1)
+    out: Path = Path("runs/orientation")
+    init_from: Path | None = Field(None, description="start from another run's weights")
+
+    def command(self) -> str:
+        """The ``catalign train-orientation`` command line that runs this configuration."""
+        return (
+            f"catalign train-orientation --out {self.out} --steps {self.steps} "
+            f"--batch-size {self.batch_size} --views-per-shape {self.views_per_shape} "
+            f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
+            + ("" if self.init_from is None else f" --init-from {self.init_from}")
+            + ("" if self.learning_rate == 2e-3 else f" --learning-rate {self.learning_rate:g}")
+        )
+
+
+@dataclass(frozen=True)
+class ViewSet:
+    """Cached views: points (V,P,3) float32 in the world frame (the first ``counts[v]`` rows of
+    view ``v`` are distinct points, the rest repeat them) and each chair's model -> world
+    rotation (V,3,3)."""
+
+    points: np.ndarray
+    counts: np.ndarray
+    rotations: np.ndarray
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, points=self.points, counts=self.counts, rotations=self.rotations)
+
+    @classmethod
+    def load(cls, path: Path) -> ViewSet:
+        with np.load(path) as data:
+            return cls(data["points"], data["counts"], data["rotations"])
+
+
+def render_views(
+    shapes: list[Shape],
+    views_per_shape: int,
+    *,
+    seed: int,
+    view_points: int,
+    so3_share: float,
+    floor_share: float,
+    progress: bool = True,
+) -> ViewSet:
+    """``views_per_shape`` noisy partial views of each metric shape, as the evaluation makes
+    them (an upright share, some with floor, the rest in any rotation)."""
+    points, counts, rotations = [], [], []
+    jobs = [(s, v) for s in range(len(shapes)) for v in range(views_per_shape)]
+    for s, v in tqdm(jobs, desc="render views", unit="view", disable=not progress):
+        shape = shapes[s]
+        rng = np.random.default_rng([seed, s, v])
+        mode = "so3" if rng.random() < so3_share else "upright"
+        pose = random_object_pose(rng, mode, height=shape.height / 2)
+        floor = Floor() if mode == "upright" and rng.random() < floor_share else None
+        seen = render_view(shape, pose, random_camera(pose[:3, 3], rng), rng, floor=floor)
+        if len(seen) < 16:
+            continue
+        order = rng.permutation(len(seen))[:view_points]
+        padded = np.resize(order, view_points)  # repeats the distinct points when too few
+        points.append(seen[padded].astype(np.float32))
+        counts.append(len(order))
+        rotations.append(pose[:3, :3])
+    return ViewSet(np.stack(points), np.asarray(counts), np.stack(rotations))
+
+
+def soft_labels(truth: np.ndarray, bins: np.ndarray, sigma_deg: float) -> np.ndarray:
+    """(B,K) targets: a Gaussian of the angle between each true unit vector (B,D) and each
+    bin's (K,D), normalised to sum to one."""
+    angles = np.degrees(np.arccos(np.clip(truth @ bins.T, -1.0, 1.0)))
+    weights = np.exp(-0.5 * (angles / sigma_deg) ** 2)
+    return weights / weights.sum(axis=1, keepdims=True)
+
+
+def tilted(direction: np.ndarray, max_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """``direction`` turned by up to ``max_deg`` degrees about a random perpendicular axis."""
+    axis = np.cross(direction, rng.normal(size=3))
+    axis /= np.linalg.norm(axis)
+    return axis_angle(axis, np.radians(rng.uniform(0.0, max_deg))) @ direction
+
+
+def samples(
+    views: ViewSet, rows: np.ndarray, config: OrientationConfig, rng: np.random.Generator
+) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray], np.ndarray]:
+    """One batch: rotated views with their true ups, and levelled views with their headings."""
+    rotated, ups, levelled, headings = [], [], [], []
+    circle = np.stack([np.cos(HEADING_ANGLES), np.sin(HEADING_ANGLES)], axis=1)
+    for row in rows:
+        count = views.counts[row]
+        keep = rng.integers(min(config.min_points, count), count + 1)
+        points = views.points[row, rng.permutation(count)[:keep]].astype(np.float64)
+        up = views.rotations[row] @ MODEL_UP
+        turn = random_rotation(rng)
+        rotated.append(points @ turn.T)
+        ups.append(turn @ up)
+        level = yaw(rng.uniform(0, 2 * np.pi)) @ levelling(tilted(up, config.tilt_deg, rng))
+        levelled.append(points @ level.T)
+        headings.append(heading_of(level @ views.rotations[row]))
+    heading_vectors = np.stack([np.cos(headings), np.sin(headings)], axis=1)
+    return (
+        rotated,
+        soft_labels(np.stack(ups), UP_DIRECTIONS, config.label_sigma_deg),
+        levelled,
+        soft_labels(heading_vectors, circle, config.label_sigma_deg),
+    )
+
+
+def soft_cross_entropy(logits: Tensor, targets: np.ndarray) -> Tensor:
+    return -(torch.from_numpy(targets).float() * torch.log_softmax(logits, dim=1)).sum(1).mean()
+
+
+def train_orientation(
+    config: OrientationConfig,
+    views: ViewSet,
+    held_out: ViewSet | None = None,
+    progress: bool = True,
+    data: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Train both networks on ``views``; export the weights and a card (with the accuracy on
+    ``held_out`` views, when given, and what ``data`` says of the training data) to
+    ``config.out``."""
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    model = OrientationModel(width=config.width)
+    if config.init_from is not None:
+        model.load_state_dict(load_orientation(config.init_from).model.state_dict())
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(
+        optimizer, max_lr=config.learning_rate, total_steps=config.steps
+    )
+    started = time.perf_counter()
+    model.train()
+    bar = tqdm(range(config.steps), desc="train orientation", disable=not progress)
+    for step in bar:
+        rng = np.random.default_rng([config.seed, step])
+        rows = rng.integers(0, len(views.counts), config.batch_size)
+        rotated, up_targets, levelled, heading_targets = samples(views, rows, config, rng)
+        up_loss = soft_cross_entropy(model.up(occupancy_grids(rotated)), up_targets)
+        heading_logits = model.heading(occupancy_grids(levelled))
+        heading_loss = soft_cross_entropy(heading_logits, heading_targets)
+        optimizer.zero_grad()
+        (up_loss + heading_loss).backward()
+        optimizer.step()
+        schedule.step()
+        bar.set_postfix(up=f"{up_loss.item():.3f}", heading=f"{heading_loss.item():.3f}")
+    model.eval()
+    seconds = time.perf_counter() - started
+    accuracy = (
+        None if held_out is None else proposal_accuracy(OrientationProposer(model, {}), held_out)
+    )
+    card = {
+        "training": json.loads(config.model_dump_json()),
+        "command": config.command(),
+        "training_data": (data or {}) | {"views": len(views.counts)},
+        "training_time_s": round(seconds, 1),
+        "held_out_accuracy": accuracy,
+    }
+    return export_orientation(config.out, model, card)
+
+
+def proposal_accuracy(proposer: OrientationProposer, views: ViewSet) -> dict[str, float]:
+    """Shares of ``views`` (as they are: no augmentation) whose true up is within 15 degrees of
+    the top-1 and of any of the top-3 up proposals, and whose true heading, the view levelled by
+    its true up, is within 22.5 degrees of the top-1 and of either of the top-2 headings."""
+    up_hits = np.zeros((len(views.counts), 2), dtype=bool)
+    heading_hits = np.zeros_like(up_hits)
+    for row in range(len(views.counts)):
+        points = views.points[row, : views.counts[row]].astype(np.float64)
+        up = views.rotations[row] @ MODEL_UP
+        ups = [p.value for p in proposer.ups(points, 3)]
+        within = [np.degrees(np.arccos(np.clip(u @ up, -1, 1))) <= 15.0 for u in ups]
+        up_hits[row] = [within[0], any(within)]
+        level = levelling(up)
+        truth = heading_of(level @ views.rotations[row])
+        headings = [p.value for p in proposer.headings([points @ level.T], 2)[0]]
+        near = [abs(np.angle(np.exp(1j * (h - truth)))) <= np.radians(22.5) for h in headings]
+        heading_hits[row] = [near[0], any(near)]
+    shares = np.concatenate([up_hits.mean(axis=0), heading_hits.mean(axis=0)])
+    names = ("up_top1", "up_top3", "heading_top1", "heading_top2")
+    return {name: round(float(share), 4) for name, share in zip(names, shares, strict=True)}
+
+
+def export_orientation(directory: Path, model: OrientationModel, card: dict[str, Any]) -> dict:
+    """Write the weights and their card (with the weights' sha256) to ``directory``."""
+    return export_weights(directory, model, card, WEIGHTS_FILE, CARD_FILE)
+
+
+def run(config: OrientationConfig, chairs: SharedChairs, progress: bool = True) -> dict[str, Any]:
+    """The whole command: render (or reuse) the training views of the shared training chairs
+    and ``config.procedural`` procedural ones, and held-out views of the validation chairs at a
+    seed of their own; train; export."""
+    cache = config.out / "views.npz"
+    train_ids, val_ids = chairs.ids("train"), chairs.ids("val")
+    if cache.is_file():
+        views = ViewSet.load(cache)
+    else:
+        shapes = [to_metric(chairs.load(i)) for i in train_ids]
+        shapes += list(ProceduralChairs(config.procedural))
+        views = render_views(shapes, config.views_per_shape, seed=config.seed, **_rendering(config))
+        views.save(cache)
+    held_out_shapes = [to_metric(chairs.load(i)) for i in val_ids]
+    held_out = render_views(held_out_shapes, 4, seed=HELD_OUT_SEED, **_rendering(config))
+    data = {
+        "shared_train_chairs": len(train_ids),
+        "procedural_chairs": config.procedural,
+        "held_out": f"4 views of each of {len(val_ids)} validation chairs, seed {HELD_OUT_SEED}",
+    }
+    return train_orientation(config, views, held_out, progress, data)
+
+
+def _rendering(config: OrientationConfig) -> dict[str, Any]:
+    return {
+        "view_points": config.view_points,
+        "so3_share": config.so3_share,
+        "floor_share": config.floor_share,
+    }

@@ -1,0 +1,97 @@
+"""Real ScanNet chairs through a real server, the default library and the SDK, with and without
+``up``: there is no CAD pose for them, so what is checked is what must hold anyway (see
+``../shared/data/real_scans/README.md``): the chair comes back standing upright, the four copies
+of one chair get one model, and a scan moved by a known transform gets that transform back."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import default_chairs_root
+from catalign.frames import MODEL_UP
+from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
+from catalign.paths import DEFAULT_MODEL_DIR
+from catalign_client import AlignResult, Client
+
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+COPIES = [f"scene0000_00_inst{i}" for i in (29, 30, 31, 32)]
+MOVED = "scene0451_01_chair30"
+# A rigid motion a hand-held sensor could add: 50 degrees about a tilted axis, and a shift.
+MOTION = make_pose(
+    axis_angle(np.array([0.3, -0.5, 0.8]), np.radians(50)), np.array([1.5, -0.7, 0.4])
+)
+
+
+@pytest.fixture(scope="module")
+def scans() -> dict[str, np.ndarray]:
+    folder = default_chairs_root().parent / "real_scans"
+    files = sorted(folder.glob("*.npy"))
+    if len(files) < 10:
+        pytest.skip(f"the real scans are not at {folder} (../shared/data/real_scans)")
+    return {f.stem: np.load(f).astype(np.float64) for f in files}
+
+
+@pytest.fixture(scope="module")
+def client(serve: Callable) -> Iterator[Client]:
+    """The SDK on a server of the shipped model and the default library."""
+    library = Path(DEFAULT_MODEL_DIR) / "library"
+    with serve(library=library, warmup=False) as server, Client(server.url, timeout=120) as sdk:
+        yield sdk
+
+
+@pytest.fixture(scope="module")
+def answers(client: Client, scans: dict[str, np.ndarray]) -> dict[tuple[str, bool], AlignResult]:
+    """Every scan aligned with ``up`` = +Z and without ``up``."""
+    return {
+        (name, with_up): client.align(points, up=(0, 0, 1) if with_up else None, seed=0)
+        for name, points in scans.items()
+        for with_up in (True, False)
+    }
+
+
+def tilt_deg(result: AlignResult, up: np.ndarray = WORLD_UP) -> float:
+    model_up = result.rotation @ MODEL_UP
+    return float(np.degrees(np.arccos(np.clip(model_up @ up, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
+def test_every_chair_comes_back_standing_upright(
+    answers: dict[tuple[str, bool], AlignResult], scans: dict[str, np.ndarray], with_up: bool
+) -> None:
+    tilts = {name: round(tilt_deg(answers[name, with_up]), 1) for name in scans}
+    assert all(t <= 10.0 for t in tilts.values()), tilts
+    if not with_up:
+        assert all(answers[name, False].up_estimated for name in scans)
+
+
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
+def test_the_four_copies_of_one_chair_get_one_model(
+    answers: dict[tuple[str, bool], AlignResult], with_up: bool
+) -> None:
+    models = {answers[name, with_up].model_id for name in COPIES}
+    assert len(models) == 1, models
+
+
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
+def test_a_moved_scan_gets_the_motion_back_in_its_pose(
+    client: Client,
+    answers: dict[tuple[str, bool], AlignResult],
+    scans: dict[str, np.ndarray],
+    with_up: bool,
+) -> None:
+    moved = scans[MOVED] @ MOTION[:3, :3].T + MOTION[:3, 3]
+    up = tuple(MOTION[:3, :3] @ WORLD_UP) if with_up else None
+    result = client.align(moved, up=up, seed=0)
+    before = answers[MOVED, with_up]
+    assert result.model_id == before.model_id
+    expected = MOTION @ before.pose
+    assert rotation_error_deg(result.pose[:3, :3], expected[:3, :3]) <= 2.0
+    assert np.linalg.norm(result.pose[:3, 3] - expected[:3, 3]) <= 0.02
+
+
+def test_the_default_model_ships_orientation_proposals() -> None:
+    assert (Path(DEFAULT_MODEL_DIR) / "orientation" / "orientation_card.json").is_file()

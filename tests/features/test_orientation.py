@@ -1,0 +1,124 @@
+"""Orientation proposals: the occupancy grid, peak picking, and a tiny training run end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import procedural_shape
+from catalign.errors import ConfigError
+from catalign.features.orientation import (
+    CARD_FILE,
+    GRID,
+    UP_DIRECTIONS,
+    WEIGHTS_FILE,
+    fibonacci_sphere,
+    find_orientation,
+    load_orientation,
+    occupancy_grids,
+    peaks,
+)
+from catalign.geometry.se3 import random_rotation
+from catalign.training.orientation import (
+    OrientationConfig,
+    render_views,
+    soft_labels,
+    train_orientation,
+)
+
+
+def test_fibonacci_sphere_is_even() -> None:
+    directions = fibonacci_sphere(256)
+    assert np.allclose(np.linalg.norm(directions, axis=1), 1.0)
+    # Every direction of the sphere has a bin within 10 degrees (bins are about 13 apart).
+    probes = np.random.default_rng(0).normal(size=(2000, 3))
+    probes /= np.linalg.norm(probes, axis=1, keepdims=True)
+    nearest = np.degrees(np.arccos(np.clip((probes @ directions.T).max(axis=1), -1, 1)))
+    assert nearest.max() < 10.0
+    assert abs(directions.mean(axis=0)).max() < 0.01
+
+
+def test_occupancy_grid_ignores_density_and_place() -> None:
+    rng = np.random.default_rng(0)
+    cube = rng.uniform(-0.4, 0.4, size=(3000, 3))
+    far = cube + np.array([5.0, -2.0, 1.0])
+    grids = occupancy_grids([cube, np.repeat(cube, 4, axis=0), far])
+    assert grids.shape == (3, 1, GRID, GRID, GRID)
+    assert set(np.unique(grids.numpy())) == {0.0, 1.0}
+    assert bool((grids[0] == grids[1]).all())  # repeated points change nothing
+    # The same cube elsewhere: the same cells (up to rounding at cell borders).
+    overlap = (grids[0] * grids[2]).sum() / grids[2].sum()
+    assert overlap > 0.99
+
+
+def test_peaks_are_distinct_and_refined() -> None:
+    truth = [np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])]
+    probabilities = 0.7 * soft_labels(truth[0][None], UP_DIRECTIONS, 8.0)[0]
+    probabilities += 0.3 * soft_labels(truth[1][None], UP_DIRECTIONS, 8.0)[0]
+    found = peaks(probabilities, UP_DIRECTIONS, 3, distinct_deg=30.0)
+    assert len(found) == 3
+    for (direction, _), expected in zip(found[:2], truth, strict=False):
+        assert np.degrees(np.arccos(direction @ expected)) < 4.0
+        assert np.isclose(np.linalg.norm(direction), 1.0)
+    assert found[0][1] > found[1][1] > found[2][1]
+    angle = np.degrees(np.arccos(np.clip(found[2][0] @ found[0][0], -1, 1)))
+    assert angle > 20.0  # not the first peak again (its best bin is beyond 30 degrees)
+
+
+def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path) -> None:
+    shapes = [procedural_shape(seed) for seed in (0, 1)]
+    views = render_views(
+        shapes, 3, seed=0, view_points=256, so3_share=0.5, floor_share=0.5, progress=False
+    )
+    assert views.points.shape == (6, 256, 3)
+    config = OrientationConfig(steps=3, batch_size=4, min_points=64, out=tmp_path / "run")
+    card = train_orientation(config, views, held_out=views, progress=False)
+
+    assert (tmp_path / "run" / WEIGHTS_FILE).is_file()
+    stored = json.loads((tmp_path / "run" / CARD_FILE).read_text())
+    assert stored["sha256"] == card["sha256"]
+    assert stored["training"]["steps"] == 3
+    assert set(stored["held_out_accuracy"]) == {
+        "up_top1",
+        "up_top3",
+        "heading_top1",
+        "heading_top2",
+    }
+
+    proposer = load_orientation(tmp_path / "run")
+    points = views.points[0].astype(np.float64) @ random_rotation(np.random.default_rng(1)).T
+    ups = proposer.ups(points, 3)
+    assert len(ups) == 3
+    assert all(np.isclose(np.linalg.norm(p.value), 1.0) for p in ups)
+    assert ups[0].score >= ups[1].score >= ups[2].score
+    headings = proposer.headings([points, points[:100]], 2)
+    assert [len(h) for h in headings] == [2, 2]
+    assert all(-np.pi <= p.value <= np.pi for h in headings for p in h)
+
+
+def test_a_replaced_weights_file_is_refused(tmp_path: Path) -> None:
+    views = render_views(
+        [procedural_shape(0)],
+        2,
+        seed=0,
+        view_points=128,
+        so3_share=0.0,
+        floor_share=0.0,
+        progress=False,
+    )
+    train_orientation(
+        OrientationConfig(steps=1, batch_size=2, min_points=64, out=tmp_path),
+        views,
+        progress=False,
+    )
+    weights = tmp_path / WEIGHTS_FILE
+    weights.write_bytes(weights.read_bytes()[:-8] + b"\0" * 8)
+    with pytest.raises(ConfigError, match="does not match its card"):
+        load_orientation(tmp_path)
+
+
+def test_a_model_folder_without_orientation_has_no_proposer(tmp_path: Path) -> None:
+    assert find_orientation(tmp_path) is None

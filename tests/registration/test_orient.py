@@ -1,0 +1,102 @@
+"""The orient stage: given or proposed ups, snapping to a plane, the floor, proposed headings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import Shape
+from catalign.data.views import Floor, camera_at, render_view, upright_rotation
+from catalign.features.orientation import Proposal
+from catalign.geometry.se3 import axis_angle, make_pose
+from catalign.registration.describe import even_headings, rotations_of
+from catalign.registration.orient import orient, snap_to_plane
+
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+VOXEL = 0.025
+
+
+class FixedProposer:
+    """Proposes the given ups, and the given headings under every up."""
+
+    def __init__(self, ups: list[np.ndarray], headings: list[float]) -> None:
+        self._ups, self._headings = ups, headings
+        self.levelled: list[np.ndarray] = []
+
+    def ups(self, points: np.ndarray, count: int) -> list[Proposal]:
+        return [Proposal(u / np.linalg.norm(u), 1.0 / (i + 1)) for i, u in enumerate(self._ups)]
+
+    def headings(self, levelled: list[np.ndarray], count: int) -> list[list[Proposal]]:
+        self.levelled = levelled
+        return [[Proposal(h, 0.5) for h in self._headings[:count]] for _ in levelled]
+
+
+def tilted(direction: np.ndarray, degrees: float) -> np.ndarray:
+    return axis_angle(np.array([1.0, 0.0, 0.0]), np.radians(degrees)) @ direction
+
+
+def view(shape: Shape, floor: Floor | None = None) -> np.ndarray:
+    """The box chair standing on a Z-up floor, seen from 2 m and 30 degrees up."""
+    pose = make_pose(upright_rotation(0.4), np.array([0.0, 0.0, -shape.points[:, 1].min()]))
+    camera = camera_at(np.array([0.0, 0.0, 0.4]), 2.0, 30.0, 20.0)
+    return render_view(shape, pose, camera, np.random.default_rng(0), floor=floor)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a), -1.0, 1.0))))
+
+
+def test_a_proposal_a_few_degrees_off_snaps_to_the_seat(box_chair: Shape) -> None:
+    points = view(box_chair)
+    snapped = snap_to_plane(points, tilted(WORLD_UP, 8.0), voxel=VOXEL)
+    assert angle_deg(snapped, WORLD_UP) < 1.5
+
+
+def test_a_proposal_with_no_plane_near_it_is_kept(box_chair: Shape) -> None:
+    points = view(box_chair)
+    sideways = tilted(WORLD_UP, 50.0)
+    assert np.allclose(snap_to_plane(points, sideways, voxel=VOXEL), sideways)
+
+
+def test_a_given_up_is_kept_and_its_floor_set_aside(box_chair: Shape) -> None:
+    points = view(box_chair, Floor())
+    oriented = orient(
+        points, WORLD_UP * 3, None, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
+    )
+    [orientation] = oriented.orientations
+    assert orientation.given and np.allclose(orientation.up, WORLD_UP)
+    assert orientation.headings == even_headings(8)  # no proposer: every heading
+    floor_heights = points[oriented.floor, 2]
+    assert oriented.floor.sum() > 0.3 * len(points)
+    assert np.abs(floor_heights).max() < 0.05
+    assert (points[~oriented.floor, 2] > 0.01).mean() > 0.97
+
+
+def test_without_up_the_floor_under_a_proposal_becomes_the_first_up(box_chair: Shape) -> None:
+    points = view(box_chair, Floor())
+    sideways, off = tilted(WORLD_UP, 90.0), tilted(WORLD_UP, 9.0)
+    proposer = FixedProposer([sideways, off], headings=[0.3, 2.0, 4.0])
+    oriented = orient(
+        points, None, proposer, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
+    )
+    first, second = oriented.orientations
+    assert not first.given and angle_deg(first.up, WORLD_UP) < 1.0
+    assert np.allclose(second.up, sideways)
+    assert oriented.floor.sum() > 0.3 * len(points)
+    # headings are proposed on the levelled cloud less its floor, two per up
+    assert first.headings == (0.3, 2.0) and first.headings_proposed
+    assert all(len(cloud) == (~oriented.floor).sum() for cloud in proposer.levelled)
+
+
+@pytest.mark.parametrize("heading", [0.0, 1.2, -2.5])
+def test_rotations_level_the_up_and_turn_by_the_heading(heading: float) -> None:
+    from catalign.frames import MODEL_UP
+    from catalign.registration.base import Orientation
+
+    up = np.array([0.2, -0.3, 0.9])
+    [rotation] = rotations_of(Orientation(up, False, (heading,), headings_proposed=True))
+    assert np.allclose(rotation @ (up / np.linalg.norm(up)), MODEL_UP)
+    # a model turned by the heading about its up comes out of the rotation unturned
+    levelled_model = rotation @ np.linalg.inv(rotation) @ axis_angle(MODEL_UP, heading)
+    unturned = axis_angle(MODEL_UP, -heading) @ levelled_model
+    assert np.allclose(unturned, np.eye(3))
