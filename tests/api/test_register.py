@@ -187,3 +187,28 @@ def test_info_describes_what_is_served(client: httpx.Client, server: Server) -> 
     assert info["headings"] in (1, 8) and info["voxel_size"] > 0
     assert info["engine"] == server.settings.engine.model_dump() | {"headings": info["headings"]}
     assert set(info["versions"]) == {"python", "torch", "open3d", "numpy"}
+
+
+def test_the_answer_reports_the_up_it_used_and_the_floor_it_set_aside(
+    client: httpx.Client, views: Callable[..., View]
+) -> None:
+    """A view with a ring of floor: with ``up`` the answer echoes it (unit length, not
+    estimated) and counts the floor in ``points_set_aside``; without ``up`` it reports an
+    estimated up near the true one (the floor's normal)."""
+    from catalign.data.shapes import procedural_shape
+    from catalign.data.views import Floor, camera_at, render_view
+
+    view = views(seed=2, yaw=2.5)
+    shape = procedural_shape(2)
+    camera = camera_at(np.array([0.3, -0.2, 0.4]), 2.0, 25.0, 30.0)
+    with_floor = render_view(shape, view.pose, camera, np.random.default_rng(2), floor=Floor())
+    assert len(with_floor) > len(view.points) + 2000
+    given = client.post("/register", json={"points": with_floor.tolist(), "up": [0, 0, 2]})
+    assert given.status_code == 200, given.text
+    body = given.json()
+    assert body["up"] == pytest.approx([0.0, 0.0, 1.0]) and body["up_estimated"] is False
+    assert body["points_set_aside"] >= 0.9 * (len(with_floor) - len(view.points))
+    estimated = client.post("/register", json={"points": with_floor.tolist()}).json()
+    assert estimated["up_estimated"] is True
+    assert np.dot(estimated["up"], [0.0, 0.0, 1.0]) > np.cos(np.radians(2.0))
+    assert estimated["points_set_aside"] >= 0.9 * (len(with_floor) - len(view.points))

@@ -28,6 +28,8 @@ def _align_answer(**overrides: Any) -> dict[str, Any]:
         "num_inliers": 812,
         "inlier_ratio": 0.64,
         "points_set_aside": 3,
+        "up": [0.0, 0.0, 1.0],
+        "up_estimated": False,
         "candidates": [{"model_id": "chair_0042", "score": 0.91}, {"model_id": "c7", "score": 0.4}],
         "timings_ms": {"features": 41.5, "ransac": 12.0},
         "request_id": "req-123",

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from catalign_client import (
+    AlignResult,
     APIError,
     AsyncClient,
     AuthenticationError,
@@ -508,3 +509,14 @@ def test_async_client_is_an_async_context_manager(align_answer):
         return client
 
     assert asyncio.run(use()).is_closed
+
+
+def test_the_answer_says_which_up_it_used(align_answer):
+    estimated = AlignResult.from_json(align_answer(up=[0.0, 1.0, 0.0], up_estimated=True))
+    assert estimated.up == (0.0, 1.0, 0.0) and estimated.up_estimated
+    assert estimated.to_dict()["up"] == [0.0, 1.0, 0.0]
+    # an answer without the fields (an older server) keeps the request's up, not estimated
+    older = {k: v for k, v in align_answer().items() if k not in ("up", "up_estimated")}
+    parsed = AlignResult.from_json(older, up=(0.0, 0.0, 1.0))
+    assert parsed.up == (0.0, 0.0, 1.0) and not parsed.up_estimated
+    assert AlignResult.from_json(align_answer(up=None)).up is None

@@ -50,7 +50,7 @@ def test_plot_draws_three_views_and_writes_a_png(align_answer, tmp_path: Path):
 
 
 def test_the_model_is_drawn_where_the_pose_puts_it(align_answer):
-    result = AlignResult.from_json(align_answer(), up=(0, 0, 1))
+    result = AlignResult.from_json(align_answer())
     figure = result.plot(OBSERVED.tolist(), MODEL)
     model, seen = posed(result), OBSERVED
     for ax, (h, v) in zip(figure.axes, [(0, 1), (0, 2), (1, 2)], strict=True):
@@ -60,13 +60,13 @@ def test_the_model_is_drawn_where_the_pose_puts_it(align_answer):
 
 
 def test_views_follow_up_or_fall_back_to_coordinate_planes(align_answer):
-    y_up = AlignResult.from_json(align_answer(), up=(0, 2, 0)).plot(OBSERVED, MODEL)
+    y_up = AlignResult.from_json(align_answer(up=[0.0, 2.0, 0.0])).plot(OBSERVED, MODEL)
     labels = [(ax.get_title(), ax.get_xlabel(), ax.get_ylabel()) for ax in y_up.axes]
     assert labels == [("top", "x", "-z"), ("front", "x", "y"), ("side", "-z", "y")]
     front = scatter(y_up.axes[1], "observed")
     np.testing.assert_allclose(front, OBSERVED[:, [0, 1]])
 
-    no_up = AlignResult.from_json(align_answer()).plot(OBSERVED, MODEL)
+    no_up = AlignResult.from_json(align_answer(up=None)).plot(OBSERVED, MODEL)
     assert [ax.get_title() for ax in no_up.axes] == ["x-y", "x-z", "y-z"]
 
 
