@@ -94,3 +94,19 @@ def test_only_axes_the_view_spans_whole_are_centred(fitter, box_chair) -> None:
     assert moved[0] == pytest.approx(-0.03, abs=0.01)
     assert moved[2] == pytest.approx(0.0, abs=1e-12)
     assert np.array_equal(shifted.transform[:3, :3], off[:3, :3])
+
+
+def test_a_floor_under_the_view_gives_its_bottom(fitter, box_chair) -> None:
+    """The legs' last 5 cm set aside with the floor: without the floor's level the middle of
+    the observed height is 2.5 cm too high, and so is the pose; with it the pose comes back
+    down to where the chair stands."""
+    bottom = box_chair.points[:, 1].min()
+    trimmed = box_chair.points[box_chair.points[:, 1] > bottom + 0.05]
+    floor_level = float(transform(np.array([[0.0, bottom, 0.0]]), POSE)[0] @ Z_UP)
+    raised = make_pose(np.eye(3), Z_UP * 0.03) @ POSE  # 3 cm too high
+    keypoints = _observe(trimmed)
+    truth = POSE[:3, 3] @ Z_UP
+    alone = fitter.centre_on_extent(_hypothesis(raised, keypoints), keypoints)
+    assert alone.transform[:3, 3] @ Z_UP - truth > 0.02
+    grounded = fitter.centre_on_extent(_hypothesis(raised, keypoints), keypoints, floor_level)
+    assert grounded.transform[:3, 3] @ Z_UP == pytest.approx(truth, abs=0.01)

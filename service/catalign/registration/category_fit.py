@@ -15,6 +15,10 @@ steps, the pose staying rigid throughout:
    spans nearly all of the model (:data:`FULL_SPAN_SHARE`), the pose is shifted so that both
    spans share their middle; where a side is hidden the fitted position is kept. Stray points
    (a sensor's flying pixels) would stretch a span, so only key points with neighbours count.
+
+When a floor was found under the query and set aside, its level is the bottom of the observed
+height in steps 1 and 3: the chair stands on it, and the cleanup took the last centimetres of
+its legs with the floor.
 """
 
 from __future__ import annotations
@@ -60,13 +64,18 @@ class CategoryFitter:
         query: o3d.geometry.PointCloud,
         keypoints: np.ndarray,
         turn: np.ndarray,
+        *,
+        floor_level: float | None = None,
     ) -> Hypothesis:
         """The three steps (module docstring) for the winner ``hypothesis`` of the query
-        (``query``, its ``keypoints``), whose levelling turn is ``turn``."""
-        height = float(np.ptp(keypoints @ turn[1]))
-        hypothesis = self.fit_at_observed_size(hypothesis, query, height)
+        (``query``, its ``keypoints``), whose levelling turn is ``turn``. ``floor_level`` is
+        the height (along ``turn``'s up) of a floor found under the query and set aside: the
+        chair stands on it, so its observed extent reaches down to it."""
+        heights = keypoints @ turn[1]
+        bottom = heights.min() if floor_level is None else min(heights.min(), floor_level)
+        hypothesis = self.fit_at_observed_size(hypothesis, query, float(heights.max() - bottom))
         hypothesis = self.stand_upright(hypothesis, turn)
-        return self.centre_on_extent(hypothesis, keypoints)
+        return self.centre_on_extent(hypothesis, keypoints, floor_level)
 
     def fit_at_observed_size(
         self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud, observed_height: float
@@ -90,16 +99,21 @@ class CategoryFitter:
         centre = self.library[hypothesis.model_id].centre
         return replace(hypothesis, transform=level_pose(hypothesis.transform, turn, centre))
 
-    def centre_on_extent(self, hypothesis: Hypothesis, keypoints: np.ndarray) -> Hypothesis:
+    def centre_on_extent(
+        self, hypothesis: Hypothesis, keypoints: np.ndarray, floor_level: float | None = None
+    ) -> Hypothesis:
         """The (upright) pose shifted along each of the model's axes on which the observation
-        spans nearly all of the model, so that the two spans share their middle there."""
+        spans nearly all of the model, so that the two spans share their middle there; the
+        observed span along the model's up reaches down to ``floor_level`` when given."""
         points = self.library[hypothesis.model_id].points
         sample = surface_sample(points, self.extent_points)
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
         observed = (supported(keypoints, self.support_radius) - translation) @ rotation
-        shift = (observed.max(axis=0) + observed.min(axis=0)) / 2
-        shift -= (sample.max(axis=0) + sample.min(axis=0)) / 2
-        full = np.ptp(observed, axis=0) >= FULL_SPAN_SHARE * np.ptp(sample, axis=0)
+        low, high = observed.min(axis=0), observed.max(axis=0)
+        if floor_level is not None:  # upright: the model's +Y is the floor's normal
+            low[1] = min(low[1], floor_level - translation @ rotation[:, 1])
+        shift = (high + low) / 2 - (sample.max(axis=0) + sample.min(axis=0)) / 2
+        full = high - low >= FULL_SPAN_SHARE * np.ptp(sample, axis=0)
         pose = hypothesis.transform.copy()
         pose[:3, 3] += rotation @ np.where(full, shift, 0.0)
         return replace(hypothesis, transform=pose)

@@ -198,7 +198,10 @@ class Engine:
         turn = search.turn
         if turn is not None and not estimate_scale and fit.fitness < config.exact_fitness:
             with clock("icp_score"):
-                winner = self.category_fitter.fit(winner, search.query, search.keypoints, turn)
+                floor = oriented.floor_level if search is searches[0] else None
+                winner = self.category_fitter.fit(
+                    winner, search.query, search.keypoints, turn, floor_level=floor
+                )
                 fit = self.refiner.fit(winner, search.query)
 
         # Answer: the winner, its fit, and every candidate's best score.

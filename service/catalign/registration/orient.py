@@ -47,10 +47,12 @@ SNAP_MIN_POINTS = 30
 
 @dataclass(frozen=True)
 class Oriented:
-    """The orientations to search, best first, and the mask of the points that are floor."""
+    """The orientations to search, best first, the mask of the points that are floor, and the
+    floor's level: its height along the first orientation's up (None without a floor)."""
 
     orientations: list[Orientation]
     floor: np.ndarray
+    floor_level: float | None = None
 
 
 def orient(
@@ -103,7 +105,8 @@ def orient(
             Orientation(u, given, even_headings(headings), False, belief)
             for u, belief in zip(ups, beliefs, strict=True)
         ]
-    return Oriented(orientations, floor)
+    level = float(np.median(points[floor] @ ups[0])) if floor.any() else None
+    return Oriented(orientations, floor, level)
 
 
 def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.ndarray:
