@@ -18,7 +18,12 @@ Proposed ups are snapped to the largest plane nearly perpendicular to them
 few. The **floor** is found here too, because where the floor is depends on which way is up
 (:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
 proposed up that has a floor beneath the cloud. A floor is the best witness of up there is, so
-that proposal's up becomes the floor's normal and is tried first. Its points are set aside.
+that proposal's up becomes the floor's normal and is tried first. Its points are set aside,
+and its level goes on to the category fit (the chair stands on it).
+
+Every orientation carries the belief in its up: the proposal's probability mass, 1 for a given
+up or a floor. The engine weighs verification scores by it, since verification alone too
+often prefers an upside-down chair.
 """
 
 from __future__ import annotations
