@@ -12,12 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from catalign.features.orientation import heading_of
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.se3 import rotation_error_deg, transform, translation_error
 from catalign.registration.base import Orientation
-from catalign.registration.gravity import leveller
+from catalign.registration.gravity import leveller, yaw_of
 
 RRE_THRESHOLDS_DEG = (10.0, 20.0, 30.0)
 RTE_THRESHOLDS_M = (0.05, 0.10)
@@ -98,7 +97,7 @@ def proposal_hits(
     nearest = int(np.argmin(angles))
     if angles[nearest] > UP_TOLERANCE_DEG:
         return hits | {"heading@1": False, "heading@2": False}
-    truth = heading_of(leveller(ups[nearest].up) @ rotation_gt)
+    truth = yaw_of(leveller(ups[nearest].up) @ rotation_gt)
     off = [abs(np.angle(np.exp(1j * (h - truth)))) for h in ups[nearest].headings]
     near = [np.degrees(o) <= HEADING_TOLERANCE_DEG for o in off]
     return hits | {"heading@1": bool(near[0]), "heading@2": bool(any(near[:2]))}

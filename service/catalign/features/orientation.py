@@ -30,8 +30,6 @@ import torch
 from safetensors.torch import load_file
 from torch import Tensor, nn
 
-from catalign.frames import MODEL_UP
-from catalign.geometry.se3 import axis_angle, rotation_between
 from catalign.training.checkpoint import verified_card
 
 GRID = 32
@@ -187,22 +185,6 @@ class OrientationProposer:
         with torch.inference_mode():
             logits = net(occupancy_grids(clouds, net.config["grid"]))
         return torch.softmax(logits, dim=1).numpy()
-
-
-def levelling(up: np.ndarray) -> np.ndarray:
-    """The rotation that turns ``up`` onto the models' up (+Y)."""
-    return rotation_between(np.asarray(up, dtype=np.float64), MODEL_UP)
-
-
-def heading_of(levelled_rotation: np.ndarray) -> float:
-    """The yaw about +Y (radians) nearest to a levelled model -> view rotation."""
-    m = levelled_rotation
-    return float(np.arctan2(m[0, 2] - m[2, 0], m[0, 0] + m[2, 2]))
-
-
-def yaw(angle: float) -> np.ndarray:
-    """The rotation by ``angle`` radians about the models' up."""
-    return axis_angle(MODEL_UP, angle)
 
 
 def find_orientation(model_dir: Path) -> OrientationProposer | None:

@@ -288,6 +288,23 @@ def _check_length(value: float, name: str) -> None:
         raise InvalidInputError(f"{name} must be a positive number of metres, got {value!r}")
 
 
+def cone_planes(
+    points: np.ndarray, up: np.ndarray, *, max_tilt_deg: float, draws: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Planes through ``draws`` random triples of ``points`` whose normal, turned towards
+    ``up``, is within ``max_tilt_deg`` of it: unit normals (K,3) and offsets (K,) with
+    ``normal @ x = offset`` on the plane. Empty when no triple qualifies."""
+    picks = rng.integers(0, len(points), size=(draws, 3))
+    a, b, c = points[picks[:, 0]], points[picks[:, 1]], points[picks[:, 2]]
+    normals = np.cross(b - a, c - a)
+    lengths = np.linalg.norm(normals, axis=1)
+    valid = lengths > 1e-12
+    normals[valid] /= lengths[valid, None]
+    normals *= np.where(normals @ up < 0, -1.0, 1.0)[:, None]
+    valid &= normals @ up >= math.cos(math.radians(max_tilt_deg))
+    return normals[valid], np.einsum("ij,ij->i", normals[valid], a[valid])
+
+
 def _ransac_plane(
     points: np.ndarray, up: np.ndarray, rng: np.random.Generator
 ) -> tuple[np.ndarray, float]:
@@ -297,17 +314,11 @@ def _ransac_plane(
     scored = points
     if len(scored) > RANSAC_SAMPLE:
         scored = scored[rng.choice(len(scored), RANSAC_SAMPLE, replace=False)]
-    picks = rng.integers(0, len(points), size=(RANSAC_DRAWS, 3))
-    a, b, c = points[picks[:, 0]], points[picks[:, 1]], points[picks[:, 2]]
-    normals = np.cross(b - a, c - a)
-    lengths = np.linalg.norm(normals, axis=1)
-    valid = lengths > 1e-12
-    normals[valid] /= lengths[valid, None]
-    normals *= np.where(normals @ up < 0, -1.0, 1.0)[:, None]
-    valid &= normals @ up >= math.cos(math.radians(MAX_TILT_DEG))
-    if not valid.any():
+    normals, offsets = cone_planes(
+        points, up, max_tilt_deg=MAX_TILT_DEG, draws=RANSAC_DRAWS, rng=rng
+    )
+    if len(normals) == 0:
         return up, float(np.percentile(points @ up, 50.0))
-    normals, offsets = normals[valid], np.einsum("ij,ij->i", normals[valid], a[valid])
     residuals = scored @ normals.T - offsets
     score = (np.abs(residuals) < RANSAC_TOL_M).sum(axis=0) - BELOW_WEIGHT * (
         residuals < -RANSAC_TOL_M

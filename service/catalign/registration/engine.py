@@ -166,9 +166,7 @@ class Engine:
                 voxels=cloud.voxels,
                 pass_voxels=config.pass_voxels,
             )
-            searches = _searches(
-                oriented.orientations, views, config.probe_points, config.up_belief_power, seed
-            )
+            searches = _searches(oriented.orientations, views, config.probe_points, seed)
 
         # Search under each orientation: shortlist, match, hypothesise and verify.
         k = config.top_k if top_k is None else top_k
@@ -189,7 +187,8 @@ class Engine:
             refined = []
             for search, item in found[: config.refine]:
                 pose = self.refiner.refine(item.hypothesis, search.query)
-                refined.append((search, search.weighed(self.verifier.score(pose, search.checks))))
+                scored = self.verifier.score(pose, search.checks)
+                refined.append((search, self._weighed(search, scored)))
             search, best = max(refined, key=lambda pair: pair[1].score)
             winner = best.hypothesis
             fit = self.refiner.fit(winner, search.query)
@@ -243,7 +242,17 @@ class Engine:
         # Verify: every pose by the query it explains, the best also by coverage and layout.
         with clock("verify"):
             search.checks = self.verifier.query_checks(search.keypoints, search.probes, turn)
-            return [search.weighed(item) for item in self.verifier.rank(hypotheses, search.checks)]
+            return [
+                self._weighed(search, item)
+                for item in self.verifier.rank(hypotheses, search.checks)
+            ]
+
+    def _weighed(self, search: _Search, item: Scored) -> Scored:
+        """A verified pose found under ``search``'s orientation, its score weighed by the
+        belief in that orientation's up (verification alone prefers an upside-down chair too
+        often)."""
+        belief = search.orientation.belief**self.config.up_belief_power
+        return Scored(item.hypothesis, item.score * belief)
 
     def _answer(
         self,
@@ -286,14 +295,8 @@ class _Search:
     orientation: Orientation
     views: list[QueryView]
     probes: np.ndarray
-    up_belief_power: float
     candidates: list[str] = field(default_factory=list)
     checks: QueryChecks | None = None
-
-    def weighed(self, item: Scored) -> Scored:
-        """A verified pose found under this orientation, its score weighed by the belief in
-        the orientation's up (verification alone prefers an upside-down chair too often)."""
-        return Scored(item.hypothesis, item.score * self.orientation.belief**self.up_belief_power)
 
     @property
     def keypoints(self) -> np.ndarray:
@@ -309,11 +312,7 @@ class _Search:
 
 
 def _searches(
-    orientations: list[Orientation],
-    views: list[QueryView],
-    probe_points: int,
-    up_belief_power: float,
-    seed: int,
+    orientations: list[Orientation], views: list[QueryView], probe_points: int, seed: int
 ) -> list[_Search]:
     """``views`` (in the order of the orientations' rotations) split by orientation."""
     searches, first = [], 0
@@ -321,7 +320,7 @@ def _searches(
         mine = views[first : first + len(orientation.headings)]
         first += len(orientation.headings)
         probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
-        searches.append(_Search(orientation, mine, probes, up_belief_power))
+        searches.append(_Search(orientation, mine, probes))
     return searches
 
 

@@ -63,6 +63,12 @@ def yaw_rotations(yaws: np.ndarray) -> np.ndarray:
     return rotations
 
 
+def yaw_of(levelled: np.ndarray) -> float:
+    """The yaw about +Y (radians) of the rotation about +Y nearest, in the Frobenius sense, to a
+    levelled rotation (3,3): a chair's heading once its up is +Y."""
+    return float(np.arctan2(levelled[0, 2] - levelled[2, 0], levelled[0, 0] + levelled[2, 2]))
+
+
 def level_pose(pose: np.ndarray, turn: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """The upright pose nearest to a model -> observation ``pose``: the model's +Y along the
     observation's up (``turn`` is :func:`leveller`'s), the yaw the nearest (in the Frobenius
@@ -70,9 +76,7 @@ def level_pose(pose: np.ndarray, turn: np.ndarray, pivot: np.ndarray) -> np.ndar
 
     ICP onto another instance tilts the model to hug a differently shaped chair; when gravity is
     known that tilt is fitting error, not pose."""
-    levelled = turn @ pose[:3, :3]
-    yaw = np.arctan2(levelled[0, 2] - levelled[2, 0], levelled[0, 0] + levelled[2, 2])
-    rotation = turn.T @ yaw_rotations(yaw)[0]
+    rotation = turn.T @ yaw_rotations(yaw_of(turn @ pose[:3, :3]))[0]
     upright = np.eye(4)
     upright[:3, :3] = rotation
     upright[:3, 3] = pose[:3, :3] @ pivot + pose[:3, 3] - rotation @ pivot

@@ -35,7 +35,7 @@ import numpy as np
 from catalign.features.orientation import OrientationProposer
 from catalign.geometry.sampling import voxel_downsample
 from catalign.registration.base import Orientation
-from catalign.registration.cleanup import floor_mask
+from catalign.registration.cleanup import cone_planes, floor_mask
 from catalign.registration.describe import even_headings
 from catalign.registration.gravity import leveller
 
@@ -43,7 +43,7 @@ from catalign.registration.gravity import leveller
 SNAP_DEG = 15.0
 # ... found by this many three-point draws on a grid of this many voxels, with inliers within
 # a share of a voxel, and a plane must hold this share of the grid's cells (and some points).
-SNAP_DRAWS = 512
+SNAP_DRAWS = 2048
 SNAP_CELL_VOXELS = 0.8
 SNAP_TOLERANCE_VOXELS = 0.4
 SNAP_SHARE = 0.1
@@ -124,17 +124,9 @@ def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.nda
     if len(cloud) < 3:
         return up
     rng = np.random.default_rng(0)
-    a, b, c = (cloud[rng.integers(0, len(cloud), SNAP_DRAWS)] for _ in range(3))
-    normals = np.cross(b - a, c - a)
-    lengths = np.linalg.norm(normals, axis=1)
-    keep = lengths > 1e-12
-    normals = normals[keep] / lengths[keep, None]
-    normals *= np.sign(normals @ up)[:, None]
-    cone = normals @ up >= np.cos(np.radians(SNAP_DEG))
-    if not cone.any():
+    normals, offsets = cone_planes(cloud, up, max_tilt_deg=SNAP_DEG, draws=SNAP_DRAWS, rng=rng)
+    if len(normals) == 0:
         return up
-    normals, through = normals[cone], a[keep][cone]
-    offsets = np.einsum("ij,ij->i", normals, through)
     inliers = np.abs(cloud @ normals.T - offsets) < SNAP_TOLERANCE_VOXELS * voxel
     best = int(np.argmax(inliers.sum(axis=0)))
     if inliers[:, best].sum() < max(SNAP_MIN_POINTS, SNAP_SHARE * len(cloud)):

@@ -39,14 +39,12 @@ from catalign.features.orientation import (
     WEIGHTS_FILE,
     OrientationModel,
     OrientationProposer,
-    heading_of,
-    levelling,
     load_orientation,
     occupancy_grids,
-    yaw,
 )
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, random_rotation
+from catalign.registration.gravity import leveller, yaw_of, yaw_rotations
 from catalign.training.checkpoint import export_weights
 
 # Held-out views are rendered at their own seed, never one the evaluation uses (0, 1).
@@ -164,9 +162,10 @@ def samples(
         turn = random_rotation(rng)
         rotated.append(points @ turn.T)
         ups.append(turn @ up)
-        level = yaw(rng.uniform(0, 2 * np.pi)) @ levelling(tilted(up, config.tilt_deg, rng))
+        turn = yaw_rotations(rng.uniform(0, 2 * np.pi))[0]
+        level = turn @ leveller(tilted(up, config.tilt_deg, rng))
         levelled.append(points @ level.T)
-        headings.append(heading_of(level @ views.rotations[row]))
+        headings.append(yaw_of(level @ views.rotations[row]))
     heading_vectors = np.stack([np.cos(headings), np.sin(headings)], axis=1)
     return (
         rotated,
@@ -241,8 +240,8 @@ def proposal_accuracy(proposer: OrientationProposer, views: ViewSet) -> dict[str
         ups = [p.value for p in proposer.ups(points, 3)]
         within = [np.degrees(np.arccos(np.clip(u @ up, -1, 1))) <= 15.0 for u in ups]
         up_hits[row] = [within[0], any(within)]
-        level = levelling(up)
-        truth = heading_of(level @ views.rotations[row])
+        level = leveller(up)
+        truth = yaw_of(level @ views.rotations[row])
         headings = [p.value for p in proposer.headings([points @ level.T], 2)[0]]
         near = [abs(np.angle(np.exp(1j * (h - truth)))) <= np.radians(22.5) for h in headings]
         heading_hits[row] = [near[0], any(near)]
