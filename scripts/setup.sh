@@ -29,6 +29,16 @@ if [ "${1:-}" = "--test" ] && { ! command -v chromium >/dev/null 2>&1 || ! comma
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null
 fi
 
+# The image test builds and runs the image with Podman (runc runtime) on a Debian base made by
+# mmdebstrap; install them with apt where they are missing.
+if [ "${1:-}" = "--test" ] && { ! command -v podman >/dev/null 2>&1 || ! command -v runc >/dev/null 2>&1 || ! command -v mmdebstrap >/dev/null 2>&1; }; then
+    echo "setup: installing Debian packages podman, runc and mmdebstrap (image test)"
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq podman runc mmdebstrap >/dev/null
+fi
+
 want="$(cat pyproject.toml client/pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)"
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ] && [ -x "$VENV/bin/catalign" ]; then
     exit 0
