@@ -12,18 +12,58 @@ every thread that allocates (workers, the body decoders) a heap of its own.
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import threading
+from pathlib import Path
 
 _M_ARENA_MAX = -8  # glibc's mallopt parameter number
 
 
 def cores() -> int:
-    """Cores this process may run on (its CPU affinity, not the machine's count)."""
+    """Cores this process may use: its CPU affinity (not the machine's count), capped by the
+    container's CPU limit (:func:`cgroup_cpu_limit`)."""
     try:
-        return len(os.sched_getaffinity(0))
+        allowed = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+        allowed = os.cpu_count() or 1
+    limit = cgroup_cpu_limit()
+    return max(1, min(allowed, limit)) if limit is not None else allowed
+
+
+def cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """The CPU limit of this process's cgroup in whole CPUs (quota / period, rounded up), or None
+    when there is none or it cannot be read.
+
+    cgroup v2: ``root/cpu.max`` holds ``"<quota> <period>"`` in microseconds, ``"max <period>"``
+    when unlimited. cgroup v1: ``root/cpu/cpu.cfs_quota_us`` (-1 when unlimited) and
+    ``cpu.cfs_period_us`` (also under ``cpu,cpuacct/``). A Kubernetes CPU limit of 2 reads
+    ``200000 100000``: 2. Only ``root`` itself is read, which is the container's own cgroup
+    under a cgroup namespace (Docker and Kubernetes on cgroup v2) or a v1 bind mount; limits set
+    on an ancestor cgroup only (a bare process under systemd) are not seen.
+    """
+    candidates = [(root / "cpu.max", None)] + [
+        (root / folder / "cpu.cfs_quota_us", root / folder / "cpu.cfs_period_us")
+        for folder in ("cpu", "cpu,cpuacct", "cpuacct,cpu")
+    ]
+    for quota_file, period_file in candidates:
+        try:
+            if period_file is None:
+                quota, _, period = quota_file.read_text().strip().partition(" ")
+            else:
+                quota, period = quota_file.read_text().strip(), period_file.read_text().strip()
+        except (OSError, UnicodeDecodeError):
+            continue
+        if quota in ("max", "-1"):
+            return None
+        try:
+            quota_us, period_us = int(quota), int(period or 100_000)
+        except ValueError:
+            return None
+        if quota_us <= 0 or period_us <= 0:
+            return None
+        return math.ceil(quota_us / period_us)
+    return None
 
 
 def default_threads_per_worker(workers: int) -> int:

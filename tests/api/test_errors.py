@@ -7,6 +7,7 @@ One server for the module, started with an API key, read-only, a 256 KiB body li
 from __future__ import annotations
 
 import asyncio
+import base64
 import http.client
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -176,6 +177,60 @@ def test_a_missing_or_wrong_key_is_refused(server: Server, key: str | None, path
     assert response.json()["error"]["code"] == "unauthorized"
 
 
+@pytest.mark.parametrize("scheme", ["Bearer", "bearer"])
+@pytest.mark.parametrize("path", ["/models", "/metrics"])
+def test_the_key_is_accepted_as_a_bearer_token(server: Server, scheme: str, path: str) -> None:
+    """What a Prometheus ServiceMonitor's ``authorization`` field sends."""
+    response = httpx.get(f"{server.url}{path}", headers={"Authorization": f"{scheme} {KEY}"})
+    assert response.status_code == 200
+
+
+@pytest.mark.parametrize("authorization", ["Bearer wrong-key-99", "Bearer", f"Bearer  {KEY}x"])
+def test_a_wrong_bearer_token_is_refused_in_a_sentence(server: Server, authorization: str) -> None:
+    response = httpx.get(f"{server.url}/metrics", headers={"Authorization": authorization})
+    assert response.status_code == 401
+    error = response.json()["error"]
+    assert error["code"] == "unauthorized"
+    assert error["message"] == "wrong API key in the Authorization header (Bearer)"
+
+
+@pytest.mark.parametrize(
+    "authorization",
+    ["Basic " + base64.b64encode(f"prometheus:{KEY}".encode()).decode(), KEY, "Token x"],
+)
+def test_another_authorization_scheme_is_refused(server: Server, authorization: str) -> None:
+    response = httpx.get(f"{server.url}/models", headers={"Authorization": authorization})
+    assert response.status_code == 401
+    message = response.json()["error"]["message"]
+    assert "'Bearer <key>'" in message and "X-API-Key" in message
+    assert KEY not in message
+
+
+def test_a_missing_key_names_both_ways_to_send_it(server: Server) -> None:
+    message = httpx.get(f"{server.url}/info").json()["error"]["message"]
+    assert "X-API-Key header" in message and "Authorization header" in message
+
+
+def test_every_key_sent_must_be_right(server: Server) -> None:
+    def answer(headers: dict[str, str]) -> tuple[int, str | None]:
+        response = httpx.get(f"{server.url}/info", headers=headers)
+        return response.status_code, response.json().get("error", {}).get("message")
+
+    bearer, wrong_bearer = f"Bearer {KEY}", "Bearer wrong-key-0123456789"
+    assert answer({"X-API-Key": "wrong-key-0123456789", "Authorization": bearer}) == (
+        401,
+        "wrong API key in the X-API-Key header",
+    )
+    assert answer({"X-API-Key": KEY, "Authorization": wrong_bearer}) == (
+        401,
+        "wrong API key in the Authorization header (Bearer)",
+    )
+    assert answer({"X-API-Key": KEY, "Authorization": bearer})[0] == 200
+    for other in ("Basic dXNlcjpwYXNz", ""):  # not a Bearer key, even next to a right one
+        status, message = answer({"X-API-Key": KEY, "Authorization": other})
+        assert status == 401 and "'Bearer <key>'" in (message or "")
+
+
 def test_register_needs_the_key_before_anything_else(server: Server) -> None:
     response = httpx.post(f"{server.url}/register", json={"points": [[0, 0, 0]]})
     assert response.status_code == 401
@@ -207,6 +262,23 @@ def test_grpc_needs_the_key_but_health_does_not(server: Server) -> None:
     assert too_many.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert status.status == health_pb2.HealthCheckResponse.SERVING
     assert unknown.value.code() == grpc.StatusCode.NOT_FOUND
+
+
+def test_grpc_accepts_the_key_as_bearer_metadata(server: Server) -> None:
+    assert server.grpc_target is not None
+    with grpc.insecure_channel(server.grpc_target) as channel:
+        stub = catalign_pb2_grpc.CatalignStub(channel)
+        request = catalign_pb2.ListModelsRequest()
+        listed = stub.ListModels(request, metadata=[("authorization", f"Bearer {KEY}")])
+        with pytest.raises(grpc.RpcError) as wrong:
+            stub.ListModels(request, metadata=[("authorization", "Bearer wrong-key-99")])
+        with pytest.raises(grpc.RpcError) as basic:
+            stub.ListModels(request, metadata=[("authorization", f"Basic {KEY}")])
+    assert listed.count == 3
+    assert wrong.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    assert wrong.value.details() == "wrong API key in the authorization metadata (Bearer)"
+    assert basic.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    assert "'Bearer <key>'" in basic.value.details() and KEY not in basic.value.details()
 
 
 def test_a_bug_answers_500_internal_without_its_details() -> None:

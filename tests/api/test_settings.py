@@ -8,9 +8,11 @@ import pytest
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
+from catalign import threads
 from catalign.api.settings import DEFAULT_MODEL_DIR, ServiceSettings
 from catalign.cli import app
 from catalign.registration.config import EngineConfig
+from catalign.threads import cgroup_cpu_limit
 
 
 def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -100,3 +102,71 @@ def test_serve_names_an_unreadable_key_file(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["serve", "--api-key-file", str(missing)])
     assert result.exit_code == 2
     assert f"cannot read the API key file {missing}" in result.output
+
+
+@pytest.mark.parametrize(
+    ("variable", "value", "service"),
+    [
+        ("CATALIGN_PORT", "tcp://10.0.0.1:8000", "catalign"),
+        ("CATALIGN_GRPC_PORT", "tcp://10.96.3.7:50051", "catalign-grpc"),
+        ("CATALIGN_PORT", "udp://10.0.0.1:53", "catalign"),
+    ],
+)
+def test_serve_refuses_a_service_link_variable_in_one_sentence(
+    variable: str, value: str, service: str
+) -> None:
+    """A Service named ``catalign`` injects CATALIGN_PORT=tcp://...: named, with the way out."""
+    result = CliRunner().invoke(app, ["serve"], env={variable: value})
+    assert result.exit_code == 2
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in result.output
+    assert lines[0].startswith(f"error: {variable}={value} is a Kubernetes service-link variable")
+    assert f"a Service named {service}" in lines[0]
+    assert "`enableServiceLinks: false`" in lines[0] and "rename the Service" in lines[0]
+
+
+def test_a_flag_overrides_a_service_link_variable(tmp_path: Path) -> None:
+    result = CliRunner().invoke(
+        app,
+        ["serve", "--port", "9000", "--model-dir", str(tmp_path)],
+        env={"CATALIGN_PORT": "tcp://10.0.0.1:8000"},
+    )
+    assert result.exit_code == 2 and "no trained weights" in result.output  # got past settings
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        ({"cpu.max": "200000 100000\n"}, 2),  # a Kubernetes limit of 2 CPUs
+        ({"cpu.max": "150000 100000\n"}, 2),  # 1.5 CPUs: rounded up
+        ({"cpu.max": "50000 100000\n"}, 1),
+        ({"cpu.max": "max 100000\n"}, None),  # cgroup v2, unlimited
+        ({"cpu/cpu.cfs_quota_us": "300000\n", "cpu/cpu.cfs_period_us": "100000\n"}, 3),
+        ({"cpu,cpuacct/cpu.cfs_quota_us": "25000", "cpu,cpuacct/cpu.cfs_period_us": "50000"}, 1),
+        ({"cpu/cpu.cfs_quota_us": "-1\n", "cpu/cpu.cfs_period_us": "100000\n"}, None),
+        ({"cpu.max": "garbage\n"}, None),
+        ({}, None),  # no cgroup CPU controller (not Linux, or not mounted)
+    ],
+)
+def test_the_cgroup_cpu_limit_is_read_from_v2_or_v1_files(
+    tmp_path: Path, files: dict[str, str], expected: int | None
+) -> None:
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert cgroup_cpu_limit(tmp_path) == expected
+
+
+def test_the_default_threads_per_worker_honour_the_cpu_limit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A container limited to 2 CPUs on a 64-core node: 1 thread for each of 2 workers."""
+    monkeypatch.setattr(threads.os, "sched_getaffinity", lambda pid: set(range(64)))
+    monkeypatch.setattr(threads, "cgroup_cpu_limit", lambda: 2)
+    assert threads.cores() == 2
+    assert ServiceSettings(workers=2).worker_threads == 1
+    assert ServiceSettings(workers=2, threads_per_worker=3).worker_threads == 3
+    monkeypatch.setattr(threads, "cgroup_cpu_limit", lambda: 128)  # above the affinity
+    assert threads.cores() == 64
+    monkeypatch.setattr(threads, "cgroup_cpu_limit", lambda: None)  # no limit
+    assert ServiceSettings(workers=4).worker_threads == 16

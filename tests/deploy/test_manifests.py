@@ -10,8 +10,10 @@ subset of the Prometheus Operator's schema that these manifests use (unknown fie
 Then the contract: the probes hit routes the app serves, the ports are the CLI's defaults, each
 container's arguments and ``CATALIGN_*`` variables resolve through the real CLI and settings
 classes, the readers run ``--read-only``, one writer, the HPA and the PDB act on the readers,
-the queue metric is one the service exports, the API key comes from a Secret file, and every
-container runs non-root on a read-only root filesystem with emptyDirs where the service writes.
+the queue metric is one the service exports, the API key comes from a Secret file (and the
+ServiceMonitor sends the same Secret key as ``Authorization: Bearer``, which opens /metrics), and
+every container runs non-root on a read-only root filesystem with emptyDirs where the service
+writes.
 """
 
 from __future__ import annotations
@@ -60,6 +62,16 @@ _LABEL_SELECTOR = {
     },
 }
 _DURATION = {"type": "string", "pattern": r"^(0|(([0-9]+)h)?(([0-9]+)m)?(([0-9]+)s)?)$"}
+_SECRET_KEY_SELECTOR = {
+    "type": "object",
+    "additionalProperties": False,
+    "required": ["key"],
+    "properties": {
+        "name": {"type": "string"},
+        "key": {"type": "string"},
+        "optional": {"type": "boolean"},
+    },
+}
 SERVICE_MONITOR_SCHEMA = {
     "type": "object",
     "additionalProperties": False,
@@ -99,6 +111,14 @@ SERVICE_MONITOR_SCHEMA = {
                             "interval": _DURATION,
                             "scrapeTimeout": _DURATION,
                             "honorLabels": {"type": "boolean"},
+                            "authorization": {
+                                "type": "object",
+                                "additionalProperties": False,
+                                "properties": {
+                                    "type": {"type": "string"},
+                                    "credentials": _SECRET_KEY_SELECTOR,
+                                },
+                            },
                         },
                     },
                 },
@@ -173,6 +193,21 @@ def serves(path: str) -> bool:
     return path in paths and asyncio.run(ask()).status_code not in (404, 405)
 
 
+STAND_IN_KEY = "a-stand-in-api-key"
+
+
+def keyed_status(path: str, headers: dict[str, str]) -> int:
+    """The status of GET ``path`` with ``headers`` from an app (not started) that wants a key."""
+    app = create_app(ServiceSettings(grpc_port=0, api_key=STAND_IN_KEY))
+
+    async def ask() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://app") as http:
+            return await http.get(path, headers=headers)
+
+    return asyncio.run(ask()).status_code
+
+
 def resolve_settings(
     container: dict[str, Any], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> ServiceSettings:
@@ -194,7 +229,7 @@ def resolve_settings(
         assert field in fields, f"{name} names no setting (catalign.api.settings)"
         if name == "CATALIGN_API_KEY_FILE":
             value = str(tmp_path / "api-key")
-            Path(value).write_text("a-stand-in-api-key\n", encoding="utf-8")
+            Path(value).write_text(f"{STAND_IN_KEY}\n", encoding="utf-8")
         monkeypatch.setenv(name, value)
     return ServiceSettings(**flags)
 
@@ -245,6 +280,10 @@ def test_strict_validation_refuses_a_misspelt_field() -> None:
     monitor["spec"]["endpoints"][0]["intervall"] = "15s"
     with pytest.raises(jsonschema.ValidationError, match="intervall"):
         jsonschema.validate(monitor, SERVICE_MONITOR_SCHEMA)
+    monitor = copy.deepcopy(find("production", "ServiceMonitor", "catalign"))
+    monitor["spec"]["endpoints"][0]["authorization"]["credentials"]["secretName"] = "x"
+    with pytest.raises(jsonschema.ValidationError, match="secretName"):
+        jsonschema.validate(monitor, SERVICE_MONITOR_SCHEMA)
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -275,7 +314,8 @@ def test_containers_resolve_to_the_intended_settings(
         assert settings.api_key is not None  # read from the (stand-in) key file
         mounts = {m["mountPath"]: m for m in container["volumeMounts"]}
         assert mounts[str(settings.library)]["name"] == "library"
-        # A container sees every core of its node: the share per worker must be explicit.
+        # The default share follows the container's CPU limit (catalign.threads.cores), on
+        # cgroup v1 and v2 alike; the manifests still say it outright.
         assert "CATALIGN_THREADS_PER_WORKER" in env_of(container)
         cpus = math.ceil(cpu_cores(str(container["resources"]["limits"]["cpu"])))
         assert settings.workers * settings.worker_threads <= cpus, name
@@ -318,6 +358,37 @@ def test_the_api_key_comes_from_a_secret_file(overlay: str) -> None:
         (volume,) = [v for v in pod["volumes"] if v["name"] == mount["name"]]
         assert volume["secret"]["secretName"] == "catalign-api-key"
         assert volume["secret"]["items"] == [{"key": "api-key", "path": key_file.name}]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_service_monitor_sends_the_key_of_the_mounted_secret(overlay: str) -> None:
+    """/metrics wants the key; Prometheus sends it as ``Authorization: Bearer``, read from the
+    very Secret key that the pods mount as their key file (and in their namespace)."""
+    mounted = set()
+    for deployment in served_deployments(overlay).values():
+        container = main_container(deployment)
+        key_file = Path(env_of(container)["CATALIGN_API_KEY_FILE"])
+        (mount,) = [m for m in container["volumeMounts"] if m["mountPath"] == str(key_file.parent)]
+        pod = deployment["spec"]["template"]["spec"]
+        (volume,) = [v for v in pod["volumes"] if v["name"] == mount["name"]]
+        (item,) = [i for i in volume["secret"]["items"] if i["path"] == key_file.name]
+        mounted.add(
+            (volume["secret"]["secretName"], item["key"], deployment["metadata"].get("namespace"))
+        )
+    (secret,) = mounted
+    monitors = of_kind(overlay, "ServiceMonitor")
+    assert monitors or overlay in SINGLE_NODE
+    for monitor in monitors:
+        assert monitor["metadata"].get("namespace") == secret[2]  # the Secret's namespace
+        for endpoint in monitor["spec"]["endpoints"]:
+            authorization = endpoint["authorization"]
+            credentials = authorization["credentials"]
+            assert (credentials["name"], credentials["key"]) == secret[:2]
+            assert not credentials.get("optional", False)
+            # What Prometheus sends, `Authorization: <type> <key>`, opens the path.
+            sent = {"Authorization": f"{authorization.get('type', 'Bearer')} {STAND_IN_KEY}"}
+            assert keyed_status(endpoint["path"], sent) == 200
+            assert keyed_status(endpoint["path"], {}) == 401
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)

@@ -5,13 +5,13 @@ as HTTP, so both share the worker pool, the limits and the answers.
 Errors map through :data:`catalign.api.errors.ERROR_TABLE` to gRPC status codes; the catalign
 error code travels in the trailing metadata ``catalign-error-code`` and the request id (taken from
 ``x-request-id`` metadata or generated) in ``x-request-id``. With an API key configured, calls to
-``Catalign`` need it in ``x-api-key`` metadata; health checks stay open.
+``Catalign`` need it in ``x-api-key`` metadata (or, as over HTTP, ``authorization: Bearer <key>``
+metadata); health checks stay open.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hmac
 import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -20,7 +20,8 @@ from typing import TypeVar
 import grpc
 
 from catalign.api import catalign_pb2, catalign_pb2_grpc, health_pb2, health_pb2_grpc
-from catalign.api.errors import INTERNAL, UnauthorizedError, kind_of, message_of
+from catalign.api.deps import check_api_key
+from catalign.api.errors import INTERNAL, kind_of, message_of
 from catalign.api.inputs import decode_binary, parse_options
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import valid_request_id
@@ -111,7 +112,13 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
         await context.send_initial_metadata((("x-request-id", request_id),))
         started = time.perf_counter()
         try:
-            self._authenticate(metadata.get("x-api-key"))
+            check_api_key(
+                self.settings.api_key,
+                metadata.get("x-api-key"),
+                metadata.get("authorization"),
+                key_in="the x-api-key metadata",
+                bearer_in="the authorization metadata",
+            )
             reply = await run(request_id)
         except Exception as error:
             kind = kind_of(error)
@@ -124,13 +131,6 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
             await context.abort(grpc.StatusCode[kind.grpc], message_of(error))
         self._log(method, request_id, "OK", started)
         return reply
-
-    def _authenticate(self, given: str | None) -> None:
-        if self.settings.api_key is None:
-            return
-        expected = self.settings.api_key.get_secret_value().encode()
-        if given is None or not hmac.compare_digest(given.encode(), expected):
-            raise UnauthorizedError("missing or wrong API key in the x-api-key metadata")
 
     def _log(self, method: str, request_id: str, code: str, started: float) -> None:
         self.metrics.grpc_requests.labels(method, code).inc()

@@ -12,6 +12,7 @@ engine's configuration.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -24,22 +25,35 @@ from catalign.registration.config import EngineConfig
 MiB = 1 << 20
 # Variables that moved: refused with their new name rather than silently ignored.
 RENAMED = {"CATALIGN_TOP_K": "CATALIGN_ENGINE__TOP_K"}
+# What Kubernetes (and Docker's legacy links) put in <SERVICE>_PORT: tcp://10.0.0.1:8000.
+SERVICE_LINK = re.compile(r"(tcp|udp|sctp)://[^\s/]+:[0-9]+", re.IGNORECASE)
 
 
 class ServiceSettings(BaseSettings):
     """Settings of the HTTP and gRPC service (environment prefix ``CATALIGN_``).
 
     ``workers`` threads run registrations, each with ``threads_per_worker`` threads for torch,
-    BLAS, OpenMP and Open3D (default: an even share of the cores); ``queue`` more requests may
-    wait for one, and any request beyond that is refused at once with 503 ``busy``. Each
-    registration must finish within ``deadline_s`` of its arrival (queue wait included), or it
-    is stopped and answered 503 ``deadline_exceeded``. ``max_body_bytes`` bounds every request
-    body, ``max_points`` every query cloud and every uploaded file. Uploads are spooled under
-    ``spool_dir`` (default: the library's ``.spool`` folder, or the system's temporary folder
-    when the library is read-only). ``api_key`` (or the first line of ``api_key_file``), when
-    set, is required in the ``X-API-Key`` header (gRPC: ``x-api-key`` metadata) by every
-    endpoint but the health checks. ``engine`` holds the registration engine's options, the
-    default shortlist size ``top_k`` among them (``CATALIGN_ENGINE__TOP_K``).
+    BLAS, OpenMP and Open3D (default: an even share of the cores the process may run on, capped
+    by the container's cgroup CPU limit, see :func:`catalign.threads.cores`); ``queue`` more
+    requests may wait for one, and any request beyond that is refused at once with 503
+    ``busy``. Each registration must finish within ``deadline_s`` of its arrival (queue wait
+    included), or it is stopped and answered 503 ``deadline_exceeded``. ``max_body_bytes``
+    bounds every request body, ``max_points`` every query cloud and every uploaded file. Uploads
+    are spooled under ``spool_dir`` (default: the library's ``.spool`` folder, or the system's
+    temporary folder when the library is read-only). ``api_key`` (or the first line of
+    ``api_key_file``), when set, is required in the ``X-API-Key`` header (gRPC: ``x-api-key``
+    metadata) by every endpoint but the health checks; ``Authorization: Bearer <key>`` (gRPC:
+    ``authorization`` metadata) is accepted too, for clients that cannot set a custom header.
+    ``engine`` holds the registration engine's options, the default shortlist size ``top_k``
+    among them (``CATALIGN_ENGINE__TOP_K``).
+
+    A setting whose value has the form ``tcp://host:port`` (also ``udp://``, ``sctp://``) is
+    refused at start-up, naming the variable: it is a Kubernetes service-link variable, which a
+    Service named ``catalign`` (``CATALIGN_PORT``) or ``catalign-grpc`` (``CATALIGN_GRPC_PORT``)
+    injects into every pod of its namespace unless the pod sets ``enableServiceLinks: false``.
+    It is refused rather than ignored because no setting is ever meant to hold such a value: one
+    that does was either injected (turn service links off, or rename the Service) or written by
+    mistake for a port, and in both cases starting on a default port would hide the problem.
     """
 
     model_config = SettingsConfigDict(
@@ -77,6 +91,17 @@ class ServiceSettings(BaseSettings):
         for old, new in RENAMED.items():
             if old in os.environ:
                 raise ValueError(f"{old} is now {new}; rename it in the environment")
+        return data
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_service_link_values(cls, data: object) -> object:
+        if not isinstance(data, dict):
+            return data
+        for field, value in data.items():
+            secret = field == "api_key"  # any printable key is allowed, and never echoed
+            if not secret and isinstance(value, str) and SERVICE_LINK.fullmatch(value.strip()):
+                raise ValueError(_service_link_message(str(field), value.strip()))
         return data
 
     @field_validator("api_key")
@@ -131,3 +156,17 @@ class ServiceSettings(BaseSettings):
     def capacity(self) -> int:
         """Requests admitted at once: running plus waiting."""
         return self.workers + self.queue
+
+
+def _service_link_message(field: str, value: str) -> str:
+    """One sentence on a service-link value in ``field``, naming the variable that holds it."""
+    wanted = f"CATALIGN_{field}".upper()
+    variable = next((name for name in os.environ if name.upper() == wanted), wanted)
+    service = ""
+    if variable.upper().endswith("_PORT"):
+        service = f" named {variable[: -len('_PORT')].lower().replace('_', '-')}"
+    return (
+        f"{variable}={value} is a Kubernetes service-link variable (the address of a Service"
+        f"{service}), not a setting: set `enableServiceLinks: false` in the pod spec or rename "
+        "the Service"
+    )
