@@ -242,6 +242,50 @@ def train_orientation(
 
 
 @app.command()
+def calibrate(
+    out: Annotated[Path, typer.Option(help="Folder of the calibrator (ships in model_store/).")] = (
+        Path("model_store/confidence")
+    ),
+    views: Annotated[int, typer.Option(min=1, help="Views per training chair and mode.")] = 2,
+    seed: Annotated[int, typer.Option(help="Seed of the views and of RANSAC.")] = 2_000,
+    pose_mode: Annotated[
+        list[str] | None,
+        typer.Option(help="upright (up given) and/or so3 (no up); repeat; both if unset."),
+    ] = None,
+    max_shapes: Annotated[
+        int | None, typer.Option(min=2, help="Cap on training chairs (quick runs).")
+    ] = None,
+    model_dir: Annotated[
+        Path | None,
+        typer.Option(help="Weights whose answers are calibrated (default: model_store/)."),
+    ] = None,
+    chairs_dir: Annotated[
+        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+) -> None:
+    """Fit the answers' confidence (a logistic regression) on views of the training chairs."""
+    from catalign.data.shapes import SharedChairs
+    from catalign.features.extractor import LearnedExtractor
+    from catalign.training.calibration import CalibrationConfig, run
+
+    modes = tuple(pose_mode or ("upright", "so3"))
+    with exit_on_error():
+        for mode in modes:
+            if mode not in ("upright", "so3"):
+                raise ConfigError(f"unknown pose mode {mode!r}; use upright or so3")
+        config = CalibrationConfig(
+            out=out,
+            views=views,
+            seed=seed,
+            pose_modes=modes,
+            max_shapes=max_shapes,  # type: ignore[arg-type]
+        )
+        calibrator = run(config, SharedChairs(chairs_dir), LearnedExtractor(model_dir))
+    typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
+    typer.echo(f"calibrator written to {out}")
+
+
+@app.command()
 def serve(
     library: Annotated[
         Path | None, typer.Option(help="Library folder (default model_store/library).")

@@ -14,9 +14,12 @@ from catalign.evaluation.report import COLUMNS
 from catalign.geometry.se3 import transform
 
 runner = CliRunner()
-# FPFH proposes no orientation: its proposal columns are None.
+# FPFH proposes no orientation and has no confidence: those columns are None.
 PROPOSAL_COLUMNS = {"up@1", "up@3", "heading@1", "heading@2"}
-PERCENT_COLUMNS = [c for c in COLUMNS if not c.startswith("s/") and c not in PROPOSAL_COLUMNS]
+CONFIDENCE_COLUMNS = {"ECE", "AUROC", "conf>=0.8 right", "conf>=0.8 share", "turns rescued"}
+PERCENT_COLUMNS = [
+    c for c in COLUMNS if not c.startswith("s/") and c not in PROPOSAL_COLUMNS | CONFIDENCE_COLUMNS
+]
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +71,7 @@ def test_evaluate_report_json(evaluated):
                 assert value is None  # retrieval of the observed CAD is moot across instances
                 continue
             assert value is not None and 0.0 <= value <= 100.0, (setting, column, value)
-        assert all(row[column] is None for column in PROPOSAL_COLUMNS)
+        assert all(row[column] is None for column in PROPOSAL_COLUMNS | CONFIDENCE_COLUMNS)
         assert row["refused"] == 0
         assert 0.0 < row["s/query median"] <= row["s/query p95"]
     assert set(report["cases"]) == {"same", "cross"}

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import mannwhitneyu
 
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
@@ -101,3 +102,56 @@ def proposal_hits(
     off = [abs(np.angle(np.exp(1j * (h - truth)))) for h in ups[nearest].headings]
     near = [np.degrees(o) <= HEADING_TOLERANCE_DEG for o in off]
     return hits | {"heading@1": bool(near[0]), "heading@2": bool(any(near[:2]))}
+
+
+# A right answer: the evaluation's tightest thresholds, what ``confidence`` is the probability of.
+RIGHT_RRE_DEG = 10.0
+RIGHT_RTE_M = 0.05
+# An answer turned further than this from the truth is a turn (a quarter or half turn of a
+# nearly symmetric chair), which the alternatives may hold the right pose for.
+TURNED_DEG = 45.0
+GATE = 0.8
+
+
+def is_right(error: PoseError) -> bool:
+    """Within 10 degrees and 5 cm: what ``confidence`` is the probability of."""
+    return error.rre_deg < RIGHT_RRE_DEG and error.rte_m < RIGHT_RTE_M
+
+
+def expected_calibration_error(
+    probabilities: np.ndarray, right: np.ndarray, bins: int = 10
+) -> float:
+    """The mean gap between confidence and accuracy over equal-width confidence bins,
+    weighted by the bins' shares of the answers."""
+    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=float)
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    return float(
+        sum(
+            abs(p[which == b].mean() - y[which == b].mean()) * np.mean(which == b)
+            for b in range(bins)
+            if np.any(which == b)
+        )
+    )
+
+
+def auroc(probabilities: np.ndarray, right: np.ndarray) -> float | None:
+    """Area under the ROC curve of right against wrong answers: the chance that a right answer
+    has the higher confidence (Mann-Whitney U over the two groups' sizes); None without both."""
+    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=bool)
+    if y.all() or not y.any():
+        return None
+    u = mannwhitneyu(p[y], p[~y], alternative="two-sided").statistic
+    return float(u / (y.sum() * (~y).sum()))
+
+
+def gated(
+    probabilities: np.ndarray, right: np.ndarray, threshold: float = GATE
+) -> dict[str, float]:
+    """Among answers with confidence at least ``threshold``: the share that is right
+    (``precision``) and their share of all answers (``coverage``), in percent."""
+    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=bool)
+    kept = p >= threshold
+    return {
+        "precision": float(y[kept].mean() * 100) if kept.any() else float("nan"),
+        "coverage": float(kept.mean() * 100),
+    }

@@ -10,8 +10,13 @@ from typing import Any
 import numpy as np
 
 from catalign.evaluation.metrics import (
+    TURNED_DEG,
     PoseError,
+    auroc,
     canonical_pose_error,
+    expected_calibration_error,
+    gated,
+    is_right,
     match_accuracy,
     proposal_hits,
     success_rates,
@@ -33,6 +38,11 @@ COLUMNS = (
     "up@3",
     "heading@1",
     "heading@2",
+    "ECE",
+    "AUROC",
+    "conf>=0.8 right",
+    "conf>=0.8 share",
+    "turns rescued",
     "s/query median",
     "s/query p95",
 )
@@ -63,6 +73,18 @@ def summarise(
             accuracies.append(accuracy)
         hit = proposal_hits(result.orientations, case.pose[:3, :3])
         hits.append(hit)
+        alternatives = [
+            {
+                "model_id": other.model_id,
+                "right": is_right(
+                    canonical_pose_error(
+                        other.pose, frames[other.model_id], case.pose, observed_frame
+                    )
+                ),
+                "confidence": other.confidence,
+            }
+            for other in result.alternatives
+        ]
         cases.append(
             {
                 "case": case.case_id,
@@ -71,6 +93,9 @@ def summarise(
                 "rte_m": error.rte_m,
                 "match_acc": accuracy,
                 "fitness": result.fitness,
+                "confidence": result.confidence,
+                "right": is_right(error),
+                "alternatives": alternatives,
                 "seconds": outcome.seconds,
             }
             | hit
@@ -92,9 +117,33 @@ def summarise(
     for column in ("up@1", "up@3", "heading@1", "heading@2"):
         known = [h[column] for h in hits if h[column] is not None]
         row[column] = float(np.mean(known) * 100) if known else None
+    row |= confidence_columns(cases)
     row["s/query median"] = float(np.median(seconds))
     row["s/query p95"] = float(np.percentile(seconds, 95))
     return {"row": row, "cases": cases}
+
+
+def confidence_columns(cases: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """How well ``confidence`` tells right answers from wrong ones (a refused view counts as
+    a wrong answer with confidence 0), what gating at 0.8 keeps, and the share of answers
+    turned from the truth (a quarter or half turn) whose right pose is among the
+    alternatives. None where the answers carry no confidence."""
+    if not cases or any(c.get("model_id") and c.get("confidence") is None for c in cases):
+        return dict.fromkeys(
+            ("ECE", "AUROC", "conf>=0.8 right", "conf>=0.8 share", "turns rescued")
+        )
+    p = np.array([c.get("confidence") or 0.0 for c in cases])
+    right = np.array([bool(c.get("right")) for c in cases])
+    gate = gated(p, right)
+    turned = [c for c in cases if c.get("model_id") and c["rre_deg"] > TURNED_DEG]
+    rescued = [any(a["right"] for a in c["alternatives"]) for c in turned]
+    return {
+        "ECE": expected_calibration_error(p, right),
+        "AUROC": auroc(p, right),
+        "conf>=0.8 right": gate["precision"],
+        "conf>=0.8 share": gate["coverage"],
+        "turns rescued": float(np.mean(rescued) * 100) if rescued else None,
+    }
 
 
 def format_table(method: str, rows: Sequence[dict[str, Any]]) -> str:
@@ -107,7 +156,7 @@ def format_table(method: str, rows: Sequence[dict[str, Any]]) -> str:
             value = row.get(column)
             if value is None:
                 cells.append("n/a")
-            elif column.startswith("s/"):
+            elif column.startswith("s/") or column in ("ECE", "AUROC"):
                 cells.append(f"{value:.3f}")
             else:
                 cells.append(f"{value:.1f}")

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from catalign.registration.confidence import Evidence
+
 
 @dataclass(frozen=True)
 class LibraryShape:
@@ -45,6 +47,20 @@ class Orientation:
 
 
 @dataclass(frozen=True)
+class Alternative:
+    """Another distinct answer to a query (another model, or the same one turned another
+    way): its model -> observation pose, verification score, fitness, the probability that it
+    is right (None without a calibrator), and the evidence that probability was read from."""
+
+    model_id: str
+    pose: np.ndarray
+    score: float
+    fitness: float
+    confidence: float | None
+    evidence: Evidence | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True)
 class RegistrationResult:
     """The answer to one query.
 
@@ -53,7 +69,9 @@ class RegistrationResult:
     ``points_set_aside`` counts the caller's points dropped before registering (far outliers,
     floor, detached clusters). ``orientations`` are the ways up the query was searched, best
     proposal first, and ``orientation`` the one the answer was found under (None for methods
-    that do not orient the query).
+    that do not orient the query). ``confidence`` is the probability that the answer is right
+    (None for methods, or weights, without a calibrator), read from ``evidence``;
+    ``alternatives`` are the other distinct answers, best first.
     """
 
     model_id: str
@@ -69,6 +87,9 @@ class RegistrationResult:
     points_set_aside: int = 0
     orientations: tuple[Orientation, ...] = field(default=(), repr=False)
     orientation: Orientation | None = None
+    confidence: float | None = None
+    evidence: Evidence | None = field(default=None, repr=False)
+    alternatives: tuple[Alternative, ...] = ()
 
     @property
     def up(self) -> np.ndarray | None:

@@ -54,16 +54,19 @@ from catalign.geometry.distance_grid import CELL_VOXELS
 from catalign.geometry.se3 import scale_of
 from catalign.library.index import Library
 from catalign.registration.alignment import point_cloud
-from catalign.registration.base import Orientation, RegistrationResult
+from catalign.registration.answers import best_other, distinct
+from catalign.registration.base import Alternative, Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
 from catalign.registration.cleanup import detached_mask
+from catalign.registration.confidence import Evidence
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView, describe, rotations_of, turn_of
-from catalign.registration.hypothesise import Hypothesis, Hypothesiser
+from catalign.registration.hypothesise import Hypothesiser
 from catalign.registration.match import Matcher, probe_rows
 from catalign.registration.orient import orient
 from catalign.registration.refine import Refiner
 from catalign.registration.shortlist import shortlist
+from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
     MAX_RECEIVED_VOXELS,
     CheckedCloud,
@@ -182,31 +185,30 @@ class Engine:
                 "(is it a whole object, in metres?)"
             )
 
-        # Refine the best poses by ICP and score them again; the best one wins.
+        # Refine the best pose of each of the leading distinct answers by ICP and score them
+        # again; the best one wins, the next ones are the alternatives.
         with clock("icp_score"):
-            refined = []
-            for search, item in found[: config.refine]:
-                pose = self.refiner.refine(item.hypothesis, search.query)
-                scored = self.verifier.score(pose, search.checks)
-                refined.append((search, self._weighed(search, scored)))
-            search, best = max(refined, key=lambda pair: pair[1].score)
-            winner = best.hypothesis
-            fit = self.refiner.fit(winner, search.query)
+            leading = distinct(found, config.refine, _scored)
+            refined = [(search, self._refined(search, item)) for search, item in leading]
+            refined.sort(key=lambda pair: -pair[1].score)
+            answers = distinct(refined, 1 + config.alternatives, _scored)
 
-        # Category fit: another instance (a loose fit, up known) gets the observed chair's frame.
-        turn = search.turn
-        if turn is not None and not estimate_scale and fit.fitness < config.exact_fitness:
-            with clock("icp_score"):
-                floor = oriented.floor_level if search is searches[0] else None
-                winner = self.category_fitter.fit(
-                    winner, search.query, search.keypoints, turn, floor_level=floor
-                )
-                fit = self.refiner.fit(winner, search.query)
+        # Finish each answer: the category fit (another instance, up known), its statistics,
+        # and the evidence its confidence is read from.
+        with clock("icp_score"):
+            sources = {id(item) for _, item in leading}
+            tried = [item for _, item in refined]
+            tried += [item for _, item in found if id(item) not in sources]
+            finished = [
+                self._finish(search, item, tried, estimate_scale, oriented.floor_level)
+                if search is searches[0]
+                else self._finish(search, item, tried, estimate_scale, None)
+                for search, item in answers
+            ]
 
-        # Answer: the winner, its fit, and every candidate's best score.
-        tried = [item for _, item in refined] + [item for _, item in found[config.refine :]]
+        # Answer: the winner, its fit, its alternatives and every candidate's best score.
         candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
-        result = self._answer(winner, fit, cloud, search, candidates, tried, clock.timings)
+        result = self._answer(finished, cloud, candidates, tried, clock.timings)
         return replace(result, orientations=tuple(oriented.orientations))
 
     def _search(
@@ -239,13 +241,21 @@ class Engine:
                 )
             ]
 
-        # Verify: every pose by the query it explains, the best also by coverage and layout.
+        # Verify: every pose by the query it explains, the best also by coverage and layout;
+        # then the best poses carried over to the leading candidates, verified the same way.
         with clock("verify"):
             search.checks = self.verifier.query_checks(search.keypoints, search.probes, turn)
-            return [
-                self._weighed(search, item)
-                for item in self.verifier.rank(hypotheses, search.checks)
-            ]
+            ranked = self.verifier.rank(hypotheses, search.checks)
+            carried = transferred(
+                self.library,
+                ranked,
+                search.candidates,
+                poses=self.config.transfer_poses,
+                models=self.config.transfer_models,
+            )
+            ranked += self.verifier.rank(carried, search.checks)
+            ranked.sort(key=lambda item: -item.score)
+            return [self._weighed(search, item) for item in ranked]
 
     def _weighed(self, search: _Search, item: Scored) -> Scored:
         """A verified pose found under ``search``'s orientation, its score weighed by the
@@ -254,19 +264,62 @@ class Engine:
         belief = search.orientation.belief**self.config.up_belief_power
         return Scored(item.hypothesis, item.score * belief)
 
+    def _refined(self, search: _Search, item: Scored) -> Scored:
+        """``item``'s pose refined by ICP onto its model and scored again."""
+        pose = self.refiner.refine(item.hypothesis, search.query)
+        return self._weighed(search, self.verifier.score(pose, search.checks))
+
+    def _finish(
+        self,
+        search: _Search,
+        item: Scored,
+        tried: list[Scored],
+        estimate_scale: bool,
+        floor_level: float | None,
+    ) -> _Finished:
+        """A refined answer made final: with an up, another instance (a loose fit) is given
+        the observed chair's frame (the category fit); then its statistics, and the evidence
+        (against every pose ``tried``) and confidence of it."""
+        pose = item.hypothesis
+        fit = self.refiner.fit(pose, search.query)
+        turn = search.turn
+        if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
+            pose = self.category_fitter.fit(
+                pose, search.query, search.keypoints, turn, floor_level=floor_level
+            )
+            fit = self.refiner.fit(pose, search.query)
+        explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
+        score = max(item.score, 1e-9)
+        evidence = Evidence(
+            score=item.score,
+            explained=explained,
+            covered=covered,
+            heading_margin=best_other(tried, item, same_model=True) / score,
+            model_margin=best_other(tried, item, same_model=False) / score,
+            fitness=float(fit.fitness),
+            rmse=float(fit.inlier_rmse) / self.icp_distance,
+            inlier_ratio=len(fit.correspondence_set) / len(search.keypoints),
+            up_given=search.orientation.given,
+            up_belief=search.orientation.belief,
+            keypoints=len(search.keypoints),
+        )
+        calibrator = self.extractor.confidence
+        confidence = None if calibrator is None else calibrator.probability(evidence)
+        return _Finished(search, replace(item, hypothesis=pose), fit, evidence, confidence)
+
     def _answer(
         self,
-        winner: Hypothesis,
-        fit: o3d.pipelines.registration.RegistrationResult,
+        finished: list[_Finished],
         cloud: CheckedCloud,
-        search: _Search,
         candidates: list[str],
         tried: list[Scored],
         timings: dict[str, float],
     ) -> RegistrationResult:
-        """The result for ``winner``, found in ``search``: Open3D's ``fit`` statistics on the
-        query's key points, the candidates' best scores among the poses ``tried``, and the
-        matches of the pose."""
+        """The result for the first of the ``finished`` answers (the others are its
+        alternatives): Open3D's fit statistics on the query's key points, the candidates'
+        best scores among the poses ``tried``, and the matches of the pose."""
+        best, others = finished[0], finished[1:]
+        winner, fit, search = best.item.hypothesis, best.fit, best.search
         num_inliers = len(fit.correspondence_set)
         return RegistrationResult(
             model_id=winner.model_id,
@@ -284,7 +337,36 @@ class Engine:
             scale=scale_of(winner.transform),
             points_set_aside=cloud.set_aside,
             orientation=search.orientation,
+            confidence=best.confidence,
+            evidence=best.evidence,
+            alternatives=tuple(
+                Alternative(
+                    model_id=other.item.hypothesis.model_id,
+                    pose=other.item.hypothesis.transform,
+                    score=other.item.score,
+                    fitness=float(other.fit.fitness),
+                    confidence=other.confidence,
+                    evidence=other.evidence,
+                )
+                for other in others
+            ),
         )
+
+
+@dataclass(frozen=True, eq=False)
+class _Finished:
+    """An answer made final: where it was found, its pose and score, its fit, evidence and
+    confidence."""
+
+    search: _Search
+    item: Scored
+    fit: o3d.pipelines.registration.RegistrationResult
+    evidence: Evidence
+    confidence: float | None
+
+
+def _scored(pair: tuple[_Search, Scored]) -> Scored:
+    return pair[1]
 
 
 @dataclass(eq=False)

@@ -100,9 +100,15 @@ class Verifier:
 
     def score(self, hypothesis: Hypothesis, query: QueryChecks) -> Scored:
         """One pose, fully scored."""
+        return Scored(hypothesis, float(np.prod(self.parts(hypothesis, query))))
+
+    def parts(self, hypothesis: Hypothesis, query: QueryChecks) -> tuple[float, float, float]:
+        """The three factors of one pose's score: the share of the query it explains, the
+        share of the model surface in the observed region that the query covers, and the
+        layout factor (1 without ``up``)."""
         explained = self.explained([hypothesis], query.probes)[0]
         covered, leaning = self._covered_and_leaning([hypothesis], query)
-        return Scored(hypothesis, float(explained * covered[0] * leaning[0]))
+        return float(explained), float(covered[0]), float(leaning[0])
 
     def explained(self, hypotheses: list[Hypothesis], probes: np.ndarray) -> np.ndarray:
         """The share of the query each pose lays onto its model (:class:`SurfaceCheck`), one

@@ -1,0 +1,59 @@
+"""Distinct answers: verified poses grouped into the different things they claim.
+
+Many verified poses say the same thing (one model, one heading, a few millimetres apart); the
+refinement budget and the answer's ``alternatives`` are spent on poses that say something
+different: another model, or the same model turned by more than :data:`DISTINCT_TURN_DEG`
+(a quarter or half turn of a nearly symmetric chair).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TypeVar
+
+import numpy as np
+
+from catalign.geometry.se3 import rotation_error_deg, split_scale
+from catalign.registration.verify import Scored
+
+# Two poses of one model turned further apart than this are different answers.
+DISTINCT_TURN_DEG = 30.0
+
+Item = TypeVar("Item")
+
+
+def same_answer(a: Scored, b: Scored) -> bool:
+    """Whether two poses claim the same model at nearly the same orientation."""
+    if a.hypothesis.model_id != b.hypothesis.model_id:
+        return False
+    rotation_a = split_scale(a.hypothesis.transform)[0][:3, :3]
+    rotation_b = split_scale(b.hypothesis.transform)[0][:3, :3]
+    return rotation_error_deg(rotation_a, rotation_b) <= DISTINCT_TURN_DEG
+
+
+def distinct(
+    ranked: Sequence[Item], limit: int, scored: Callable[[Item], Scored] = lambda item: item
+) -> list[Item]:
+    """The first ``limit`` items of ``ranked`` (best first) whose poses are distinct answers:
+    each item is kept unless an earlier kept one claims the same answer. ``scored`` gives an
+    item's :class:`Scored`."""
+    kept: list[Item] = []
+    for item in ranked:
+        if len(kept) == limit:
+            break
+        if not any(same_answer(scored(item), scored(other)) for other in kept):
+            kept.append(item)
+    return kept
+
+
+def best_other(ranked: Sequence[Scored], answer: Scored, *, same_model: bool) -> float:
+    """The best score in ``ranked`` of a pose that is a different answer from ``answer``:
+    of the same model turned another way (``same_model``), or of another model; 0 when
+    there is none."""
+    scores = [
+        item.score
+        for item in ranked
+        if (item.hypothesis.model_id == answer.hypothesis.model_id) == same_model
+        and not same_answer(item, answer)
+    ]
+    return float(np.max(scores)) if scores else 0.0

@@ -1,0 +1,197 @@
+"""``catalign calibrate``: fit the answers' confidence on views of the *training* chairs.
+
+The validation chairs stay untouched for measuring the calibration. The training chairs play
+both of the evaluation's settings: *same* (the library holds every training chair, so the
+observed one's CAD is in it) and *cross* (the chairs split in two halves by sorted id, each
+half's views registered against a library of the other half). Views come upright with ``up``
+given and in any rotation without it, so the regression learns what an estimated up costs.
+Every answer, the winner and its alternatives, is one sample: its
+:class:`~catalign.registration.confidence.Evidence` and whether it is right (within 10 degrees
+and 5 cm in the evaluation's category-level metric). A logistic regression (scikit-learn) on
+the standardised signals is the calibrator; its card records the command, the data and its
+in-sample quality.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from catalign.data.shapes import Shape, SharedChairs
+from catalign.data.views import WORLD_UP, PoseMode
+from catalign.errors import InvalidInputError
+from catalign.evaluation.metrics import (
+    auroc,
+    canonical_pose_error,
+    expected_calibration_error,
+    is_right,
+)
+from catalign.evaluation.protocol import TestCase, build_cases, frames_of, metric_shapes
+from catalign.features.extractor import FeatureExtractor
+from catalign.geometry.ncc import NCCFrame
+from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.base import LibraryShape, RegistrationResult
+from catalign.registration.confidence import SIGNALS, Calibrator, Evidence
+from catalign.registration.indexed import IndexedRegistrar
+
+# The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
+CALIBRATION_SEED = 2_000
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """What ``catalign calibrate`` fits on; ``command()`` is the line that reproduces it."""
+
+    out: Path = DEFAULT_MODEL_DIR / "confidence"
+    views: int = 2
+    seed: int = CALIBRATION_SEED
+    pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
+    max_shapes: int | None = None
+    regularisation: float = 1.0
+
+    def command(self) -> str:
+        modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
+        return (
+            f"catalign calibrate --out {self.out} --views {self.views} --seed {self.seed} "
+            f"{modes}" + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
+        )
+
+
+@dataclass
+class Samples:
+    """Answers and their labels: one row of signals per answer."""
+
+    evidence: list[Evidence] = field(default_factory=list)
+    right: list[bool] = field(default_factory=list)
+    kinds: list[str] = field(default_factory=list)  # "<mode>/<setting>/<winner|alternative>"
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[e.signals()[name] for name in SIGNALS] for e in self.evidence])
+
+
+def right_pose(
+    pose: np.ndarray, model_id: str, case: TestCase, frames: dict[str, NCCFrame]
+) -> bool:
+    """Whether a pose of ``model_id`` is right by the evaluation's criterion."""
+    return is_right(canonical_pose_error(pose, frames[model_id], case.pose, frames[case.shape_id]))
+
+
+def label(
+    result: RegistrationResult,
+    case: TestCase,
+    frames: dict[str, NCCFrame],
+    samples: Samples,
+    kind: str,
+) -> None:
+    """Add the winner and each alternative of ``result`` to ``samples``."""
+    if result.evidence is not None:
+        samples.evidence.append(result.evidence)
+        samples.right.append(right_pose(result.pose, result.model_id, case, frames))
+        samples.kinds.append(f"{kind}/winner")
+    for other in result.alternatives:
+        if other.evidence is not None:
+            samples.evidence.append(other.evidence)
+            samples.right.append(right_pose(other.pose, other.model_id, case, frames))
+            samples.kinds.append(f"{kind}/alternative")
+
+
+def collect(
+    config: CalibrationConfig,
+    shapes: dict[str, Shape],
+    extractor: FeatureExtractor,
+    progress: bool = True,
+) -> Samples:
+    """Register views of ``shapes`` in both settings and every pose mode; label the answers."""
+    ids = sorted(shapes)
+    halves = (ids[0::2], ids[1::2])
+    # (library ids, observed ids, setting): same, then each half against the other.
+    plans = [(ids, ids, "same"), (halves[1], halves[0], "cross"), (halves[0], halves[1], "cross")]
+    frames = frames_of(shapes)
+    samples = Samples()
+    for library_ids, observed_ids, setting in plans:
+        registrar = IndexedRegistrar(extractor, name="learned")
+        registrar.prepare([LibraryShape(i, shapes[i].points) for i in library_ids])
+        assert registrar.engine is not None
+        observed = {i: shapes[i] for i in observed_ids}
+        for mode in config.pose_modes:
+            up = WORLD_UP if mode == "upright" else None
+            cases = build_cases(observed, config.views, config.seed, mode)
+            for case in tqdm(cases, desc=f"calibrate {setting} {mode}", disable=not progress):
+                try:
+                    result = registrar.engine.register(case.points, up=up, seed=config.seed)
+                except InvalidInputError:
+                    continue  # a refused view has no answer to calibrate
+                label(result, case, frames, samples, f"{mode}/{setting}")
+    return samples
+
+
+def fit(samples: Samples, regularisation: float = 1.0) -> tuple[np.ndarray, ...]:
+    """A logistic regression on standardised signals: ``(mean, scale, coef, intercept)``."""
+    from sklearn.linear_model import LogisticRegression
+
+    x, y = samples.matrix(), np.array(samples.right)
+    if len(set(y.tolist())) < 2:
+        raise ValueError("calibration needs both right and wrong answers; use more views")
+    mean, scale = x.mean(axis=0), x.std(axis=0)
+    scale[scale < 1e-9] = 1.0
+    model = LogisticRegression(C=regularisation, max_iter=1_000)
+    model.fit((x - mean) / scale, y)
+    return mean, scale, model.coef_[0], float(model.intercept_[0])
+
+
+def calibration_quality(probabilities: Sequence[float], right: Sequence[bool]) -> dict[str, Any]:
+    """Expected calibration error (10 bins), AUROC of right against wrong, the share right."""
+    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=bool)
+    return {
+        "ece": expected_calibration_error(p, y),
+        "auroc": auroc(p, y),
+        "right": float(y.mean()),
+        "count": len(y),
+    }
+
+
+def run(
+    config: CalibrationConfig,
+    chairs: SharedChairs,
+    extractor: FeatureExtractor,
+    progress: bool = True,
+) -> Calibrator:
+    """Collect samples on the training chairs, fit, and save the calibrator to ``config.out``."""
+    started = time.perf_counter()
+    ids = list(chairs.ids("train"))
+    ids = ids if config.max_shapes is None else ids[: config.max_shapes]
+    samples = collect(config, metric_shapes(chairs, ids), extractor, progress)
+    mean, scale, coef, intercept = fit(samples, config.regularisation)
+    calibrator = Calibrator(mean, scale, coef, intercept, card={})
+    probabilities = [calibrator.probability(e) for e in samples.evidence]
+    winners = [k.endswith("winner") for k in samples.kinds]
+    card: dict[str, Any] = {
+        "command": config.command(),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "seconds": round(time.perf_counter() - started, 1),
+        "data": {
+            "chairs": f"{len(ids)} training chairs of the shared split (validation untouched)",
+            "views": config.views,
+            "seed": config.seed,
+            "pose_modes": list(config.pose_modes),
+            "answers": len(samples.right),
+            "by_kind": {k: samples.kinds.count(k) for k in sorted(set(samples.kinds))},
+        },
+        "right_means": "within 10 degrees and 5 cm (category-level metric)",
+        "in_sample": calibration_quality(probabilities, samples.right),
+        "in_sample_winners": calibration_quality(
+            [p for p, w in zip(probabilities, winners, strict=True) if w],
+            [r for r, w in zip(samples.right, winners, strict=True) if w],
+        ),
+        "coefficients": dict(zip(SIGNALS, coef.round(4).tolist(), strict=True)),
+    }
+    calibrator = Calibrator(mean, scale, coef, intercept, card=card)
+    calibrator.save(config.out)
+    return calibrator

@@ -1,0 +1,91 @@
+"""A chair that looks the same from the front and the back (a bench: a seat slab on four legs
+over a rectangular footprint) has two right poses a half turn apart. The answer returns one
+and keeps the other among its alternatives, with a similar confidence, instead of hiding it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from catalign.data.shapes import Shape, procedural_shape
+from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.geometry.se3 import make_pose, rotation_error_deg
+from catalign.library.index import build, load
+from catalign.registration.engine import Engine
+
+UP = np.array([0.0, 0.0, 1.0])
+# Seat 0.6 x 0.4 m at 0.45 m on four 4 cm legs; model frame +Y up, as the library's chairs.
+BOXES = [
+    ((-0.3, 0.42, -0.2), (0.3, 0.47, 0.2)),
+    *[
+        ((x - 0.02, 0.0, z - 0.02), (x + 0.02, 0.42, z + 0.02))
+        for x in (-0.27, 0.27)
+        for z in (-0.17, 0.17)
+    ],
+]
+
+
+def _box_surface(low: np.ndarray, high: np.ndarray, count: int, rng: np.random.Generator):
+    """``count`` points uniform on the surface of an axis-aligned box."""
+    size = high - low
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]]).repeat(2)
+    faces = rng.choice(6, size=count, p=areas / areas.sum())
+    points = low + rng.random((count, 3)) * size
+    axis, side = faces // 2, faces % 2
+    points[np.arange(count), axis] = np.where(side == 1, high[axis], low[axis])
+    return points
+
+
+def bench() -> Shape:
+    rng = np.random.default_rng(0)
+    boxes = [(np.array(lo), np.array(hi)) for lo, hi in BOXES]
+    areas = np.array([2 * (np.prod(hi - lo) / (hi - lo)).sum() for lo, hi in boxes])
+    counts = np.maximum(200, (15_000 * areas / areas.sum()).astype(int))
+    points = np.concatenate(
+        [_box_surface(lo, hi, n, rng) for (lo, hi), n in zip(boxes, counts, strict=True)]
+    )
+    return Shape("bench", points)
+
+
+@pytest.fixture(scope="module")
+def engine(tmp_path_factory: pytest.TempPathFactory) -> Engine:
+    if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
+        pytest.skip("model_store/ has no trained weights")
+    extractor = LearnedExtractor()
+    if extractor.confidence is None:
+        pytest.skip("model_store/ ships no confidence calibrator")
+    sources = tmp_path_factory.mktemp("bench") / "sources"
+    sources.mkdir()
+    for shape in (bench(), procedural_shape(0), procedural_shape(1)):
+        np.save(sources / f"{shape.shape_id}.npy", shape.points.astype(np.float32))
+    out = Path(sources.parent) / "library"
+    build([sources], out, extractor, progress=False)
+    return Engine(extractor, load(out, extractor.fingerprint))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("yaw", [0.4, 2.2])
+def test_a_bench_returns_both_half_turns_with_similar_confidence(engine: Engine, yaw: float):
+    shape = bench()
+    pose = make_pose(upright_rotation(yaw), np.array([0.5, 0.2, 0.0]))
+    camera = camera_at(np.array([0.5, 0.2, 0.3]), 1.8, 35.0, 20.0)
+    points = render_view(shape, pose, camera, np.random.default_rng(1))
+    answer = engine.register(points, up=UP, seed=0)
+
+    assert answer.model_id == "bench"
+    turned = [
+        (a, rotation_error_deg(a.pose[:3, :3], answer.pose[:3, :3]))
+        for a in answer.alternatives
+        if a.model_id == "bench"
+    ]
+    half_turns = [a for a, angle in turned if angle > 160.0]
+    assert half_turns, f"no half turn among the alternatives: {[round(t) for _, t in turned]}"
+    other = half_turns[0]
+    # Both poses are right (the bench is the same after a half turn) and scored alike.
+    assert (
+        min(rotation_error_deg(p[:3, :3], pose[:3, :3]) for p in (answer.pose, other.pose)) < 10.0
+    )
+    assert abs(other.confidence - answer.confidence) < 0.2, (answer.confidence, other.confidence)

@@ -1,0 +1,81 @@
+"""Distinct answers and pose transfer: poses grouped by what they claim, and carried between
+models that share the canonical frame."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from catalign.geometry.se3 import make_pose, transform
+from catalign.library.entry import LibraryEntry
+from catalign.library.index import Library
+from catalign.registration.answers import best_other, distinct, same_answer
+from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.transfer import transferred
+from catalign.registration.verify import Scored
+
+
+def _yaw(degrees: float) -> np.ndarray:
+    angle = np.radians(degrees)
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _scored(model_id: str, yaw_deg: float, score: float, shift: float = 0.0) -> Scored:
+    pose = make_pose(_yaw(yaw_deg), np.array([shift, 0.0, 0.0]))
+    return Scored(Hypothesis(model_id, pose, np.zeros((0, 2), dtype=np.int64), None), score)
+
+
+def test_the_same_model_at_nearly_the_same_turn_is_one_answer() -> None:
+    assert same_answer(_scored("a", 0, 0.5), _scored("a", 25, 0.4, shift=0.05))
+    assert not same_answer(_scored("a", 0, 0.5), _scored("a", 35, 0.4))
+    assert not same_answer(_scored("a", 0, 0.5), _scored("b", 0, 0.4))
+
+
+def test_distinct_keeps_the_best_of_each_answer_in_order() -> None:
+    ranked = [
+        _scored("a", 0, 0.9),
+        _scored("a", 10, 0.8),  # the same answer as the first
+        _scored("a", 180, 0.7),  # a half turn: another answer
+        _scored("b", 0, 0.6),
+        _scored("a", 175, 0.5),  # the half turn again
+        _scored("c", 90, 0.4),
+    ]
+    kept = distinct(ranked, 10)
+    assert [(k.hypothesis.model_id, k.score) for k in kept] == [
+        ("a", 0.9),
+        ("a", 0.7),
+        ("b", 0.6),
+        ("c", 0.4),
+    ]
+    assert distinct(ranked, 2) == kept[:2]
+    pairs = [("x", item) for item in ranked]
+    assert [p[1] for p in distinct(pairs, 10, lambda pair: pair[1])] == kept
+
+
+def test_best_other_separates_other_headings_from_other_models() -> None:
+    ranked = [_scored("a", 0, 0.9), _scored("a", 5, 0.85), _scored("a", 180, 0.6)]
+    ranked += [_scored("b", 0, 0.7)]
+    answer = ranked[0]
+    assert best_other(ranked, answer, same_model=True) == 0.6  # the 5-degree pose is the same
+    assert best_other(ranked, answer, same_model=False) == 0.7
+    assert best_other(ranked[:2], answer, same_model=True) == 0.0
+
+
+def test_a_carried_pose_puts_the_other_model_centre_where_the_source_centre_goes(
+    make_entry: Callable[..., LibraryEntry], make_library: Callable[..., Library]
+) -> None:
+    rng = np.random.default_rng(0)
+    small = rng.uniform([-0.2, 0.0, -0.2], [0.2, 0.8, 0.2], size=(300, 3))
+    large = rng.uniform([-0.1, 0.1, -0.3], [0.5, 1.0, 0.3], size=(300, 3))
+    library = make_library(make_entry("small", small), make_entry("large", large))
+    source = _scored("small", 40, 0.8, shift=1.5)
+    carried = transferred(library, [source], ["small", "large"], poses=1, models=5)
+    assert [h.model_id for h in carried] == ["large"]  # not back onto its own model
+    assert len(carried[0].matches) == 0
+    where_small = transform(library["small"].centre[None], source.hypothesis.transform)
+    where_large = transform(library["large"].centre[None], carried[0].transform)
+    np.testing.assert_allclose(where_large, where_small, atol=1e-9)
+    np.testing.assert_allclose(carried[0].transform[:3, :3], _yaw(40), atol=1e-12)
+    assert transferred(library, [source], ["small", "large"], poses=0, models=5) == []

@@ -1,0 +1,75 @@
+"""``catalign calibrate`` on a tiny set writes a calibrator that the engine then applies."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from catalign.cli import app
+from catalign.data.shapes import SharedChairs, to_metric
+from catalign.data.views import WORLD_UP
+from catalign.evaluation.protocol import build_cases
+from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.registration.base import LibraryShape
+from catalign.registration.confidence import SIGNALS, find_calibrator
+from catalign.registration.indexed import IndexedRegistrar
+
+runner = CliRunner()
+
+
+@pytest.mark.slow
+def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
+    chairs_root: Path, tmp_path: Path
+) -> None:
+    if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
+        pytest.skip("model_store/ has no trained weights")
+    out = tmp_path / "weights" / "confidence"
+    args = ["calibrate", "--out", str(out), "--views", "1", "--max-shapes", "4"]
+    result = runner.invoke(app, [*args, "--pose-mode", "upright", "--chairs-dir", str(chairs_root)])
+    assert result.exit_code == 0, result.output
+    assert "calibrator written" in result.output
+
+    calibrator = find_calibrator(out.parent)
+    assert calibrator is not None
+    card = calibrator.card
+    assert card["command"].startswith("catalign calibrate")
+    assert card["data"]["answers"] >= 4 and card["data"]["pose_modes"] == ["upright"]
+    assert set(card["coefficients"]) == set(SIGNALS)
+    assert 0.0 <= card["in_sample"]["ece"] <= 1.0
+
+    # The engine reads it from the weights' folder and every answer gets a probability.
+    extractor = LearnedExtractor()
+    extractor.confidence = calibrator
+    chairs = SharedChairs(chairs_root)
+    shapes = {i: to_metric(chairs.load(i)) for i in chairs.ids("val")[:2]}
+    registrar = IndexedRegistrar(extractor, name="learned", up=WORLD_UP)
+    registrar.prepare([LibraryShape(i, s.points) for i, s in shapes.items()])
+    case = build_cases(shapes, 1, seed=5)[0]
+    answer = registrar.register(case.points, seed=0)
+    assert answer.confidence is not None and 0.0 <= answer.confidence <= 1.0
+    assert all(0.0 <= a.confidence <= 1.0 for a in answer.alternatives)
+    assert answer.confidence == pytest.approx(calibrator.probability(answer.evidence))
+
+
+def test_calibrate_refuses_an_unknown_pose_mode_with_a_sentence(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["calibrate", "--out", str(tmp_path), "--pose-mode", "tilted"])
+    assert result.exit_code == 2
+    assert "unknown pose mode 'tilted'" in result.output
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_shipped_calibrator_matches_the_signals_of_this_code() -> None:
+    path = DEFAULT_MODEL_DIR / "confidence" / "calibrator.json"
+    if not path.is_file():
+        pytest.skip("model_store/ ships no confidence calibrator")
+    data = json.loads(path.read_text())
+    assert data["signals"] == list(SIGNALS)
+    assert np.all(np.asarray(data["scale"]) > 0)
+    assert (
+        "validation" in data["card"]["data"]["chairs"]
+        or "training" in data["card"]["data"]["chairs"]
+    )
