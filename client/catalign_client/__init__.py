@@ -11,11 +11,13 @@ library, its SE(3) pose and inlier statistics, without installing torch or open3
         if not client.health():
             raise SystemExit("catalign is still starting")
         try:
-            result = client.align(points, up=(0, 0, 1), seed=0)
+            result = client.align(points, up=(0, 0, 1), seed=0, min_confidence=0.8)
         except InvalidInputError as error:          # 422: fix the points, do not retry
             print(error.code, error.message, error.request_id)
             raise
-        print(result.model_id, result.fitness, result.inlier_rmse)
+        print(result.model_id, result.fitness, result.confidence)  # confidence: None or 0..1
+        if not result.accepted:                     # below min_confidence: the pose is still
+            print(result.reason)                    # there; e.g. look from another side
         R, t = result.rotation, result.translation  # x_obs = scale * R @ x_model + t
         pose = result.pose                          # numpy (4, 4) float64
         model = client.model_points(result.model_id)  # (M, 3) surface points, model frame
@@ -47,7 +49,7 @@ from ._exceptions import (
     ServiceUnavailableError,
     TransportError,
 )
-from ._models import AlignResult, Candidate, ModelInfo
+from ._models import AlignResult, Alternative, Candidate, ModelInfo
 from ._pointcloud2 import PointCloud2Like
 from ._points import HasPoints, HasVertices, PointsLike
 from ._version import __version__
@@ -55,6 +57,7 @@ from ._version import __version__
 __all__ = [
     "APIError",
     "AlignResult",
+    "Alternative",
     "AsyncClient",
     "AuthenticationError",
     "Candidate",

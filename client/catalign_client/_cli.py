@@ -3,12 +3,13 @@
 Operators and scripts on a robot need to poke the service without writing Python; the CLI is a
 thin layer over :class:`Client` that reads ``.npy``, ``.xyz`` and ``.ply`` locally (sent as
 compact float32), uploads any other file for the server to parse, prints answers as JSON on
-stdout, and turns every failure into one line on stderr and exit status 1. ``align --png out.png``
-also fetches the chosen model's points and draws them over the cloud (needs matplotlib, the
-``plot`` extra); options this installation or this file cannot serve (``--png`` without
-matplotlib, or with a file only the server can read) are refused before anything is sent, with
-exit status 2. ``--url`` and ``--api-key`` default to ``$CATALIGN_URL`` and
-``$CATALIGN_API_KEY``.
+stdout, and turns every failure into one line on stderr and exit status 1; an answer below
+``--min-confidence`` is printed all the same, with ``not accepted: <reason>`` on stderr.
+``align --png out.png`` also fetches the chosen model's points and draws them over the cloud
+(needs matplotlib, the ``plot`` extra); options this installation or this file cannot serve
+(``--png`` without matplotlib, or with a file only the server can read) are refused before
+anything is sent, with exit status 2. ``--url`` and ``--api-key`` default to
+``$CATALIGN_URL`` and ``$CATALIGN_API_KEY``.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import numpy as np
 from ._client import Client
 from ._exceptions import CatalignError
 from ._files import LOCAL_SUFFIXES, UnsupportedFileError, read_points
+from ._models import AlignResult
 from ._plot import INSTALL_HINT, require_matplotlib
 from ._version import __version__
 
@@ -77,6 +79,7 @@ def _align(client: Client, args: argparse.Namespace) -> dict[str, Any]:
         "up": args.up,
         "estimate_scale": args.estimate_scale,
         "seed": args.seed,
+        "min_confidence": args.min_confidence,
     }
     points = _local_points(path)
     if points is None:
@@ -85,11 +88,19 @@ def _align(client: Client, args: argparse.Namespace) -> dict[str, Any]:
                 f"--png draws the points read here, and {path.name} is not a file this client "
                 f"reads ({', '.join(LOCAL_SUFFIXES)}); convert it, or drop --png"
             )
-        return client.align_file(path, **options).to_dict()
+        return _answer(client.align_file(path, **options))
     result = client.align(points, encoding=args.encoding, **options)
     if args.png:
         model = client.model_points(result.model_id)
         result.plot(points, model, args.png, title=path.name)
+    return _answer(result)
+
+
+def _answer(result: AlignResult) -> dict[str, Any]:
+    """The result as JSON-ready data; an answer below ``--min-confidence`` also says so on
+    stderr (stdout stays the answer, exit status 0: the server did answer)."""
+    if not result.accepted:
+        print(f"catalign-client: not accepted: {result.reason}", file=sys.stderr)
     return result.to_dict()
 
 
@@ -131,6 +142,13 @@ def _parser() -> argparse.ArgumentParser:
     align.add_argument("--up", help="the cloud's up direction, e.g. 0,0,1")
     align.add_argument("--seed", type=int, help="seed for a reproducible answer")
     align.add_argument("--estimate-scale", action="store_true", help="also fit a uniform scale")
+    align.add_argument(
+        "--min-confidence",
+        type=float,
+        metavar="P",
+        help="probability from 0 to 1 the answer needs to be accepted; below it the answer is "
+        "still printed, with accepted false, and 'not accepted: <reason>' goes to stderr",
+    )
     align.add_argument("--encoding", choices=("binary", "json"), default="binary")
     align.add_argument(
         "--png",

@@ -93,10 +93,17 @@ class _BaseClient:
         up: UpLike | None,
         estimate_scale: bool,
         seed: int | None,
+        min_confidence: float | None,
         encoding: Encoding,
     ) -> Request:
         cloud = as_points(points)
-        options = registration_options(top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed)
+        options = registration_options(
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
+        )
         if encoding == "binary":
             return Request(
                 "POST",
@@ -117,8 +124,15 @@ class _BaseClient:
         up: UpLike | None,
         estimate_scale: bool,
         seed: int | None,
+        min_confidence: float | None,
     ) -> Request:
-        options = registration_options(top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed)
+        options = registration_options(
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
+        )
         return Request("POST", "/register", params=query(options), files=upload(path))
 
     def _add_model_request(
@@ -282,6 +296,7 @@ class Client(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        min_confidence: float | None = None,
         encoding: Encoding = "binary",
     ) -> AlignResult:
         """Find the library model that best explains ``points`` and its pose.
@@ -291,10 +306,19 @@ class Client(_BaseClient):
         x, y, z; NaN returns dropped). ``top_k``: how many shortlisted models to register (server
         default when ``None``). ``up``: the observation's up direction, e.g. ``(0, 0, 1)``.
         ``estimate_scale``: also fit a uniform scale. ``seed``: for a reproducible answer.
+        ``min_confidence``: a probability in [0, 1] the answer needs to be accepted; below it
+        the result still has the pose, with ``accepted`` ``False`` and a ``reason`` (not an
+        error: the caller decides, e.g. to look from another side).
         ``encoding``: ``"binary"`` (float32, compact) or ``"json"``.
         """
         request = self._align_request(
-            points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
+            points,
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
+            encoding=encoding,
         )
         return self._result(self._call(request), up)
 
@@ -306,10 +330,16 @@ class Client(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        min_confidence: float | None = None,
     ) -> AlignResult:
         """Like :meth:`align`, uploading a ``.ply/.pcd/.npy/.xyz`` file for the server to read."""
         request = self._align_file_request(
-            path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
+            path,
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
         )
         return self._result(self._call(request), up)
 
@@ -427,11 +457,18 @@ class AsyncClient(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        min_confidence: float | None = None,
         encoding: Encoding = "binary",
     ) -> AlignResult:
         """See :meth:`Client.align`."""
         request = self._align_request(
-            points, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed, encoding=encoding
+            points,
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
+            encoding=encoding,
         )
         return self._result(await self._call(request), up)
 
@@ -443,10 +480,16 @@ class AsyncClient(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        min_confidence: float | None = None,
     ) -> AlignResult:
         """See :meth:`Client.align_file`."""
         request = self._align_file_request(
-            path, top_k=top_k, up=up, estimate_scale=estimate_scale, seed=seed
+            path,
+            top_k=top_k,
+            up=up,
+            estimate_scale=estimate_scale,
+            seed=seed,
+            min_confidence=min_confidence,
         )
         return self._result(await self._call(request), up)
 

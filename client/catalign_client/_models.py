@@ -34,6 +34,60 @@ class Candidate:
 
 
 @dataclass(frozen=True, eq=False)
+class Alternative:
+    """Another distinct answer the server found: another model, or the same one turned by more
+    than 30 degrees (e.g. a nearly symmetric chair seen back to front).
+
+    ``pose`` is a read-only 4x4 float64 model -> observation matrix, like
+    :attr:`AlignResult.pose`; ``score`` is its verification score (as the candidates'),
+    ``fitness`` its share of query points within the inlier distance and ``confidence`` the
+    probability that it is the right answer instead (``None`` when the server has no
+    calibrator).
+    """
+
+    model_id: str
+    pose: np.ndarray = field(repr=False)
+    scale: float
+    score: float
+    fitness: float
+    confidence: float | None = None
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The 3x3 rotation, with any estimated scale divided out."""
+        return self.pose[:3, :3] / self.scale
+
+    @property
+    def translation(self) -> np.ndarray:
+        """The (3,) translation of the model origin in the observation frame."""
+        return self.pose[:3, 3].copy()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready data, the pose as nested lists (the wire format)."""
+        return {
+            "model_id": self.model_id,
+            "pose": self.pose.tolist(),
+            "scale": self.scale,
+            "score": self.score,
+            "fitness": self.fitness,
+            "confidence": self.confidence,
+        }
+
+    @classmethod
+    def from_json(cls, data: Any) -> Alternative:
+        """Parse one item of a register answer's ``alternatives``."""
+        body = _mapping(data, "alternative")
+        return cls(
+            model_id=_str(body, "model_id"),
+            pose=_pose(body.get("pose")),
+            scale=_float(body, "scale") if "scale" in body else 1.0,
+            score=_float(body, "score"),
+            fitness=_float(body, "fitness"),
+            confidence=_optional_float(body, "confidence"),
+        )
+
+
+@dataclass(frozen=True, eq=False)
 class AlignResult:
     """The best library model for a query cloud, its pose and inlier statistics.
 
@@ -44,9 +98,18 @@ class AlignResult:
     detached clusters). ``up`` is the up direction the pose was searched under: the request's,
     or the server's estimate when ``up_estimated`` (``None`` for a free search).
 
+    ``confidence`` is the probability that the pose is right (the right model within 10 degrees
+    and 5 cm of the truth), calibrated by the server on views of training chairs; ``None`` when
+    the server's weights have no calibrator. ``accepted`` is ``False`` only when the request
+    gave ``min_confidence`` and the confidence is below it (or unknown); the pose is still
+    there, and ``reason`` says why in a sentence. ``alternatives`` are up to 3 other distinct
+    answers (:class:`Alternative`), best first.
+
     Usage::
 
-        result = client.align(points)
+        result = client.align(points, min_confidence=0.8)
+        if not result.accepted:
+            print(result.reason)  # e.g. look from another side and try again
         model_in_camera = model_points @ result.pose[:3, :3].T + result.translation
     """
 
@@ -63,6 +126,10 @@ class AlignResult:
     points_set_aside: int = 0
     up: tuple[float, float, float] | None = None
     up_estimated: bool = False
+    confidence: float | None = None
+    accepted: bool = True
+    reason: str | None = None
+    alternatives: list[Alternative] = field(default_factory=list)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -90,6 +157,10 @@ class AlignResult:
             "points_set_aside": self.points_set_aside,
             "up": None if self.up is None else list(self.up),
             "up_estimated": self.up_estimated,
+            "confidence": self.confidence,
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "alternatives": [a.to_dict() for a in self.alternatives],
         }
 
     def plot(
@@ -141,6 +212,13 @@ class AlignResult:
             points_set_aside=_int(body, "points_set_aside") if "points_set_aside" in body else 0,
             up=_vec3(body, "up") if body.get("up") is not None else up,
             up_estimated=bool(body.get("up_estimated", False)),
+            confidence=_optional_float(body, "confidence"),
+            accepted=_bool(body, "accepted") if "accepted" in body else True,
+            reason=_optional_str(body, "reason"),
+            alternatives=[
+                Alternative.from_json(item)
+                for item in (_list(body, "alternatives") if "alternatives" in body else [])
+            ],
         )
 
 
@@ -225,6 +303,22 @@ def _float(body: Any, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise DecodingError(f"{key!r} is not a number: {value!r}")
     return float(value)
+
+
+def _optional_float(body: Mapping[str, Any], key: str) -> float | None:
+    """A number, or ``None`` when the answer has null or lacks the key (an older server)."""
+    return None if body.get(key) is None else _float(body, key)
+
+
+def _optional_str(body: Mapping[str, Any], key: str) -> str | None:
+    return None if body.get(key) is None else _str(body, key)
+
+
+def _bool(body: Mapping[str, Any], key: str) -> bool:
+    value = _get(body, key)
+    if not isinstance(value, bool):
+        raise DecodingError(f"{key!r} is not true or false: {value!r}")
+    return value
 
 
 def _int(body: Any, key: str) -> int:

@@ -3,13 +3,15 @@
 A retry must resend exactly what was sent, and the sync and async clients must send exactly the
 same thing, so every request is first built as a frozen :class:`Request` (files already read into
 memory) that either client can hand to httpx as often as needed. The options are checked here,
-before any I/O, and written the way the HTTP contract reads them: ``up=0,0,1`` and
-``estimate_scale=true`` as query parameters, or native JSON values in a JSON body.
+before any I/O, and written the way the HTTP contract reads them: ``up=0,0,1``,
+``estimate_scale=true`` and ``min_confidence=0.8`` as query parameters, or native JSON values in
+a JSON body.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +47,12 @@ class Request:
 
 
 def registration_options(
-    *, top_k: int | None, up: UpLike | None, estimate_scale: bool, seed: int | None
+    *,
+    top_k: int | None,
+    up: UpLike | None,
+    estimate_scale: bool,
+    seed: int | None,
+    min_confidence: float | None = None,
 ) -> dict[str, Any]:
     """The registration options, checked, with "not given" left out (the server's default)."""
     options: dict[str, Any] = {}
@@ -62,7 +69,20 @@ def registration_options(
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         options["seed"] = seed
+    if min_confidence is not None:
+        options["min_confidence"] = confidence_threshold(min_confidence)
     return options
+
+
+def confidence_threshold(value: float) -> float:
+    """A probability in [0, 1] (``min_confidence``), as a float."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, numbers.Real)
+        or not 0.0 <= float(value) <= 1.0  # NaN fails too
+    ):
+        raise ValueError(f"min_confidence must be a number from 0 to 1, got {value!r}")
+    return float(value)
 
 
 def model_points_params(max_points: int) -> dict[str, str]:

@@ -30,6 +30,19 @@ def _align_answer(**overrides: Any) -> dict[str, Any]:
         "points_set_aside": 3,
         "up": [0.0, 0.0, 1.0],
         "up_estimated": False,
+        "confidence": 0.87,
+        "accepted": True,
+        "reason": None,
+        "alternatives": [
+            {
+                "model_id": "c7",
+                "pose": [[-1.0, 0, 0, 0.5], [0, -1.0, 0, -0.25], [0, 0, 1.0, 1.0], [0, 0, 0, 1.0]],
+                "scale": 1.0,
+                "score": 0.4,
+                "fitness": 0.55,
+                "confidence": 0.06,
+            }
+        ],
         "candidates": [{"model_id": "chair_0042", "score": 0.91}, {"model_id": "c7", "score": 0.4}],
         "timings_ms": {"features": 41.5, "ransac": 12.0},
         "request_id": "req-123",

@@ -78,6 +78,31 @@ def test_align_other_formats_are_uploaded(server, capsys, tmp_path: Path):
     assert json.loads(capsys.readouterr().out)["pose"][3] == [0, 0, 0, 1]
 
 
+def test_an_answer_below_min_confidence_is_printed_and_named_on_stderr(
+    server, capsys, tmp_path: Path, align_answer
+):
+    reason = "confidence 0.42 is below min_confidence 0.80: ask for another view"
+    answer = align_answer(confidence=0.42, accepted=False, reason=reason)
+    server["routes"][("POST", "/register")] = httpx.Response(200, json=answer)
+    np.save(tmp_path / "view.npy", POINTS)
+    argv = ["align", str(tmp_path / "view.npy"), "--url", "http://c.test"]
+    assert run(server, *argv, "--min-confidence", "0.8") == 0
+    out = capsys.readouterr()
+    printed = json.loads(out.out)
+    assert printed == answer and printed["confidence"] == 0.42 and printed["pose"]
+    assert out.err == f"catalign-client: not accepted: {reason}\n"
+    (request,) = server["requests"]
+    assert request.url.params["min_confidence"] == "0.8"
+
+
+def test_a_bad_min_confidence_exits_1_before_sending(server, capsys, tmp_path: Path):
+    np.save(tmp_path / "view.npy", POINTS)
+    argv = ["align", str(tmp_path / "view.npy"), "--url", "http://c.test"]
+    assert run(server, *argv, "--min-confidence", "1.5") == 1
+    assert "min_confidence must be a number from 0 to 1" in capsys.readouterr().err
+    assert server["requests"] == []
+
+
 def test_models_prints_the_library(server, capsys, monkeypatch):
     monkeypatch.setenv("CATALIGN_URL", "http://from-env.test")
     assert run(server, "models") == 0

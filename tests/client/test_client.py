@@ -15,6 +15,7 @@ import pytest
 
 from catalign_client import (
     AlignResult,
+    Alternative,
     APIError,
     AsyncClient,
     AuthenticationError,
@@ -186,6 +187,11 @@ def test_bad_points_are_refused_before_sending(make_api, points, message):
         {"up": "0,x,1"},
         {"estimate_scale": "yes"},
         {"encoding": "msgpack"},
+        {"min_confidence": 1.5},
+        {"min_confidence": -0.1},
+        {"min_confidence": float("nan")},
+        {"min_confidence": "high"},
+        {"min_confidence": True},
     ],
 )
 def test_bad_options_are_refused_before_sending(make_api, options):
@@ -193,6 +199,29 @@ def test_bad_options_are_refused_before_sending(make_api, options):
     with pytest.raises((ValueError, TypeError)):
         api.align(CLOUD, **options)
     assert api.requests == []
+
+
+@pytest.mark.parametrize("value", [1.5, "0.8", float("inf"), [0.5]])
+def test_a_bad_min_confidence_is_a_value_error_naming_it(make_api, tmp_path: Path, value):
+    api = make_api(ok({}))
+    with pytest.raises(ValueError, match="min_confidence must be a number from 0 to 1"):
+        api.align(CLOUD, min_confidence=value)
+    with pytest.raises(ValueError, match="min_confidence"):
+        api.align_file(tmp_path / "never-read.ply", min_confidence=value)
+    assert api.requests == []
+
+
+def test_min_confidence_is_sent_as_the_contract_reads_it(make_api, align_answer, tmp_path: Path):
+    api = make_api(ok(align_answer()))
+    api.align(CLOUD, min_confidence=0.8)
+    api.align(CLOUD, min_confidence=1, encoding="json")
+    path = tmp_path / "view.npy"
+    np.save(path, CLOUD)
+    api.align_file(path, min_confidence=0.0)
+    binary, as_json, upload = api.requests
+    assert binary.url.params["min_confidence"] == "0.8"
+    assert json.loads(as_json.content)["min_confidence"] == 1.0
+    assert upload.url.params["min_confidence"] == "0.0"
 
 
 def test_align_file_uploads_multipart_with_query_options(make_api, align_answer, tmp_path: Path):
@@ -241,6 +270,14 @@ def test_align_result_is_typed_with_a_numpy_pose(make_api, align_answer):
     assert (result.fitness, result.inlier_rmse, result.inlier_ratio) == (0.91, 0.012, 0.64)
     assert result.candidates == [Candidate("chair_0042", 0.91), Candidate("c7", 0.4)]
     assert result.timings_ms == {"features": 41.5, "ransac": 12.0}
+    assert (result.confidence, result.accepted, result.reason) == (0.87, True, None)
+    (alternative,) = result.alternatives
+    assert isinstance(alternative, Alternative)
+    assert (alternative.model_id, alternative.scale) == ("c7", 1.0)
+    assert (alternative.score, alternative.fitness, alternative.confidence) == (0.4, 0.55, 0.06)
+    assert alternative.pose.shape == (4, 4) and not alternative.pose.flags.writeable
+    np.testing.assert_allclose(alternative.rotation, np.diag([-1.0, -1.0, 1.0]))
+    np.testing.assert_allclose(alternative.translation, [0.5, -0.25, 1.0])
     assert json.loads(json.dumps(result.to_dict())) == align_answer()
 
 
@@ -254,8 +291,26 @@ def test_align_result_is_typed_with_a_numpy_pose(make_api, align_answer):
         (lambda answer: {**answer, "candidates": [{"model_id": 1, "score": 0.5}]}, "model_id"),
         (lambda answer: {**answer, "pose": np.eye(3).tolist()}, "4x4"),
         (lambda answer: {**answer, "pose": [[float("nan")] * 4] * 4}, "4x4"),
+        (lambda answer: {**answer, "confidence": "high"}, "confidence"),
+        (lambda answer: {**answer, "accepted": "yes"}, "accepted"),
+        (lambda answer: {**answer, "reason": 42}, "reason"),
+        (lambda answer: {**answer, "alternatives": {}}, "alternatives"),
+        (lambda answer: {**answer, "alternatives": [{"model_id": "c7"}]}, "4x4"),
     ],
-    ids=["list", "string", "no-model-id", "string-count", "bad-candidate", "3x3", "nan-pose"],
+    ids=[
+        "list",
+        "string",
+        "no-model-id",
+        "string-count",
+        "bad-candidate",
+        "3x3",
+        "nan-pose",
+        "string-confidence",
+        "string-accepted",
+        "number-reason",
+        "alternatives-object",
+        "alternative-without-pose",
+    ],
 )
 def test_malformed_success_answers_raise_decoding_error(make_api, align_answer, mutate, message):
     api = make_api(ok(mutate(align_answer())))
@@ -520,3 +575,27 @@ def test_the_answer_says_which_up_it_used(align_answer):
     parsed = AlignResult.from_json(older, up=(0.0, 0.0, 1.0))
     assert parsed.up == (0.0, 0.0, 1.0) and not parsed.up_estimated
     assert AlignResult.from_json(align_answer(up=None)).up is None
+
+
+def test_an_answer_below_min_confidence_keeps_its_pose_and_says_why(align_answer):
+    reason = "confidence 0.42 is below min_confidence 0.80: ask for another view"
+    result = AlignResult.from_json(
+        align_answer(confidence=0.42, accepted=False, reason=reason, alternatives=[])
+    )
+    assert not result.accepted and result.reason == reason and result.confidence == 0.42
+    assert result.pose.shape == (4, 4) and result.alternatives == []
+    assert result.to_dict()["accepted"] is False and result.to_dict()["reason"] == reason
+
+
+def test_an_answer_without_a_calibrator_has_no_confidence(align_answer):
+    result = AlignResult.from_json(align_answer(confidence=None))
+    assert result.confidence is None and result.accepted
+    assert result.to_dict()["confidence"] is None
+
+
+def test_an_older_servers_answer_is_accepted_without_alternatives(align_answer):
+    new = ("confidence", "accepted", "reason", "alternatives")
+    older = {k: v for k, v in align_answer().items() if k not in new}
+    result = AlignResult.from_json(older)
+    assert (result.confidence, result.accepted, result.reason) == (None, True, None)
+    assert result.alternatives == []

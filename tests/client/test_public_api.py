@@ -9,6 +9,7 @@ import catalign_client
 EXPECTED = {
     "APIError",
     "AlignResult",
+    "Alternative",
     "AsyncClient",
     "AuthenticationError",
     "Candidate",

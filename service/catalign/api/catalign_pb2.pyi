@@ -7,18 +7,20 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("points", "top_k", "up", "estimate_scale", "seed")
+    __slots__ = ("points", "top_k", "up", "estimate_scale", "seed", "min_confidence")
     POINTS_FIELD_NUMBER: _ClassVar[int]
     TOP_K_FIELD_NUMBER: _ClassVar[int]
     UP_FIELD_NUMBER: _ClassVar[int]
     ESTIMATE_SCALE_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    MIN_CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     points: bytes
     top_k: int
     up: _containers.RepeatedScalarFieldContainer[float]
     estimate_scale: bool
     seed: int
-    def __init__(self, points: _Optional[bytes] = ..., top_k: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., estimate_scale: _Optional[bool] = ..., seed: _Optional[int] = ...) -> None: ...
+    min_confidence: float
+    def __init__(self, points: _Optional[bytes] = ..., top_k: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., estimate_scale: _Optional[bool] = ..., seed: _Optional[int] = ..., min_confidence: _Optional[float] = ...) -> None: ...
 
 class Candidate(_message.Message):
     __slots__ = ("model_id", "score")
@@ -28,8 +30,24 @@ class Candidate(_message.Message):
     score: float
     def __init__(self, model_id: _Optional[str] = ..., score: _Optional[float] = ...) -> None: ...
 
+class Alternative(_message.Message):
+    __slots__ = ("model_id", "pose", "scale", "score", "fitness", "confidence")
+    MODEL_ID_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    FITNESS_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    model_id: str
+    pose: _containers.RepeatedScalarFieldContainer[float]
+    scale: float
+    score: float
+    fitness: float
+    confidence: float
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., score: _Optional[float] = ..., fitness: _Optional[float] = ..., confidence: _Optional[float] = ...) -> None: ...
+
 class RegisterReply(_message.Message):
-    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated")
+    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives")
     class TimingsMsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -50,6 +68,10 @@ class RegisterReply(_message.Message):
     POINTS_SET_ASIDE_FIELD_NUMBER: _ClassVar[int]
     UP_FIELD_NUMBER: _ClassVar[int]
     UP_ESTIMATED_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    ACCEPTED_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    ALTERNATIVES_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     pose: _containers.RepeatedScalarFieldContainer[float]
     scale: float
@@ -63,7 +85,11 @@ class RegisterReply(_message.Message):
     points_set_aside: int
     up: _containers.RepeatedScalarFieldContainer[float]
     up_estimated: bool
-    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ...) -> None: ...
+    confidence: float
+    accepted: bool
+    reason: str
+    alternatives: _containers.RepeatedCompositeFieldContainer[Alternative]
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()

@@ -25,6 +25,7 @@ from catalign.api.errors import INTERNAL, kind_of, message_of
 from catalign.api.inputs import decode_binary, parse_options
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import valid_request_id
+from catalign.api.schemas import RegisterResponse
 from catalign.api.service import RegistrationService
 from catalign.api.settings import ServiceSettings
 from catalign.errors import ConfigError
@@ -54,29 +55,18 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                     "up": list(request.up) or None,
                     "estimate_scale": request.estimate_scale,
                     "seed": request.seed,
+                    "min_confidence": (
+                        request.min_confidence if request.HasField("min_confidence") else None
+                    ),
                 }
             )
             self.service.ensure_capacity()
             query = decode_binary(request.points, options, self.settings.max_points)
             result = await self.service.register(query, deadline_s=context.time_remaining())
-            return catalign_pb2.RegisterReply(
-                model_id=result.model_id,
-                pose=[float(v) for v in result.pose.reshape(-1)],
-                scale=result.scale,
-                fitness=result.fitness,
-                inlier_rmse=result.inlier_rmse,
-                num_inliers=result.num_inliers,
-                inlier_ratio=result.inlier_ratio,
-                points_set_aside=result.points_set_aside,
-                up=[] if result.up is None else [float(v) for v in result.up],
-                up_estimated=result.up_estimated,
-                candidates=[
-                    catalign_pb2.Candidate(model_id=c.model_id, score=c.score)
-                    for c in result.candidates
-                ],
-                timings_ms=result.timings_ms,
-                request_id=request_id,
+            answer = RegisterResponse.from_result(
+                result, request_id, min_confidence=options.min_confidence
             )
+            return register_reply(answer)
 
         return await self._call("Register", context, run)
 
@@ -141,6 +131,41 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
             code,
             (time.perf_counter() - started) * 1e3,
         )
+
+
+def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
+    """The gRPC form of an HTTP answer, so that both carry the same fields and values."""
+    return catalign_pb2.RegisterReply(
+        model_id=answer.model_id,
+        pose=[v for row in answer.pose for v in row],
+        scale=answer.scale,
+        fitness=answer.fitness,
+        inlier_rmse=answer.inlier_rmse,
+        num_inliers=answer.num_inliers,
+        inlier_ratio=answer.inlier_ratio,
+        points_set_aside=answer.points_set_aside,
+        up=answer.up or [],
+        up_estimated=answer.up_estimated,
+        confidence=answer.confidence,
+        accepted=answer.accepted,
+        reason=answer.reason or "",
+        alternatives=[
+            catalign_pb2.Alternative(
+                model_id=a.model_id,
+                pose=[v for row in a.pose for v in row],
+                scale=a.scale,
+                score=a.score,
+                fitness=a.fitness,
+                confidence=a.confidence,
+            )
+            for a in answer.alternatives
+        ],
+        candidates=[
+            catalign_pb2.Candidate(model_id=c.model_id, score=c.score) for c in answer.candidates
+        ],
+        timings_ms=answer.timings_ms,
+        request_id=answer.request_id,
+    )
 
 
 class HealthServicer(health_pb2_grpc.HealthServicer):

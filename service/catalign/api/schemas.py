@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
 from typing_extensions import TypeAliasType
 
+from catalign.geometry.se3 import scale_of
 from catalign.registration.config import EngineConfig
 
 if TYPE_CHECKING:
     from catalign.library.entry import LibraryEntry
-    from catalign.registration.base import RegistrationResult
+    from catalign.registration.base import Alternative, RegistrationResult
 
 MAX_SEED = 2**31 - 1
 MAX_TOP_K = 10_000
@@ -31,6 +32,9 @@ StrictFloat = Annotated[float, Strict()]  # ints pass, strings and booleans do n
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 Row3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Pose4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
+
+RIGHT_POSE = "the right model within 10 degrees and 5 cm of the truth"
 
 
 class RegisterOptions(BaseModel):
@@ -65,6 +69,16 @@ class RegisterOptions(BaseModel):
         le=MAX_SEED,
         description="RANSAC seed: same request, same answer.",
     )
+    min_confidence: float | None = Field(
+        default=None,
+        strict=True,
+        ge=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="The confidence in [0, 1] the answer needs to be accepted. Below it, or when "
+        "the server's weights have no calibrator, the answer is still a 200 with the pose, but "
+        "with accepted false and a reason.",
+    )
 
     @field_validator("up")
     @classmethod
@@ -92,11 +106,75 @@ class CandidatePublic(BaseModel):
     score: float = Field(description="Alignment score: inlier share discounted by the RMSE.")
 
 
+def acceptance(confidence: float | None, min_confidence: float | None) -> tuple[bool, str | None]:
+    """Whether an answer of ``confidence`` meets the request's ``min_confidence``, and if not,
+    why, in a sentence: the one rule behind ``accepted`` and ``reason`` over HTTP and gRPC.
+
+    Without ``min_confidence`` every answer is accepted; with it, an answer whose confidence is
+    below it, or unknown (weights without a calibrator), is not.
+    """
+    if min_confidence is None:
+        return True, None
+    if confidence is None:
+        return False, (
+            "this server's weights have no confidence calibrator, so min_confidence "
+            f"{_number(min_confidence)} cannot be met"
+        )
+    if confidence < min_confidence:
+        return False, (
+            f"confidence {_below(confidence, min_confidence)} is below min_confidence "
+            f"{_number(min_confidence)}: ask for another view"
+        )
+    return True, None
+
+
+def _number(value: float) -> str:
+    """Two decimals when that is exact (``0.80``), else the shortest exact form."""
+    shown = f"{value:.2f}"
+    return shown if float(shown) == value else repr(value)
+
+
+def _below(value: float, limit: float) -> str:
+    """``value`` with two decimals, or as many more as it takes to read below ``limit``."""
+    for digits in range(2, 10):
+        shown = f"{value:.{digits}f}"
+        if float(shown) < limit:
+            return shown
+    return repr(value)
+
+
+class AlternativePublic(BaseModel):
+    """Another distinct answer: another model, or the same one turned by over 30 degrees."""
+
+    model_id: str
+    pose: Pose4 = Field(
+        description="4x4 row-major model -> observation transform, as the answer's pose."
+    )
+    scale: float
+    score: float = Field(description="Its verification score, as the candidates' scores.")
+    fitness: float = Field(description="Share of query points within the inlier distance.")
+    confidence: float | None = Field(
+        description="The probability that this pose is right instead (" + RIGHT_POSE + "); "
+        "null when the server's weights have no calibrator."
+    )
+
+    @classmethod
+    def from_alternative(cls, alternative: Alternative) -> AlternativePublic:
+        return cls(
+            model_id=alternative.model_id,
+            pose=[[float(v) for v in row] for row in alternative.pose],
+            scale=scale_of(alternative.pose),
+            score=float(alternative.score),
+            fitness=float(alternative.fitness),
+            confidence=None if alternative.confidence is None else float(alternative.confidence),
+        )
+
+
 class RegisterResponse(BaseModel):
     """The best model for the query, its pose and its inlier statistics."""
 
     model_id: str
-    pose: Annotated[list[Row4], Field(min_length=4, max_length=4)] = Field(
+    pose: Pose4 = Field(
         description="4x4 row-major model -> observation transform "
         "(x_obs = pose[:3, :3] @ x_model + pose[:3, 3]); the 3x3 block is scale * R."
     )
@@ -117,6 +195,24 @@ class RegisterResponse(BaseModel):
     up_estimated: bool = Field(
         description="True when the request gave no up and the service estimated it."
     )
+    confidence: float | None = Field(
+        description="The probability that the pose is right, meaning " + RIGHT_POSE + "; "
+        "calibrated on views of training chairs. Null when the server's weights have no "
+        "calibrator."
+    )
+    accepted: bool = Field(
+        description="False only when the request gave min_confidence and the confidence is "
+        "below it or unknown; the answer is then still a 200 with the pose, for the caller to "
+        "decide (e.g. to look again from another view)."
+    )
+    reason: str | None = Field(
+        description='Why the answer is not accepted, in a sentence (e.g. "confidence 0.42 is '
+        'below min_confidence 0.80: ask for another view"); null when accepted.'
+    )
+    alternatives: list[AlternativePublic] = Field(
+        description="Up to 3 other distinct answers (another model, or the same one turned by "
+        "more than 30 degrees), best first; empty when there are none."
+    )
     candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
     timings_ms: dict[str, float] = Field(
         description="Milliseconds per stage (queue, validate, orient, features, shortlist, "
@@ -125,7 +221,16 @@ class RegisterResponse(BaseModel):
     request_id: str
 
     @classmethod
-    def from_result(cls, result: RegistrationResult, request_id: str) -> RegisterResponse:
+    def from_result(
+        cls,
+        result: RegistrationResult,
+        request_id: str,
+        *,
+        min_confidence: float | None = None,
+    ) -> RegisterResponse:
+        """The answer to ``result``, accepted or not against the request's ``min_confidence``."""
+        confidence = None if result.confidence is None else float(result.confidence)
+        accepted, reason = acceptance(confidence, min_confidence)
         return cls(
             model_id=result.model_id,
             pose=[[float(v) for v in row] for row in result.pose],
@@ -137,6 +242,10 @@ class RegisterResponse(BaseModel):
             points_set_aside=result.points_set_aside,
             up=None if result.up is None else [float(v) for v in result.up],
             up_estimated=result.up_estimated,
+            confidence=confidence,
+            accepted=accepted,
+            reason=reason,
+            alternatives=[AlternativePublic.from_alternative(a) for a in result.alternatives],
             candidates=[
                 CandidatePublic(model_id=c.model_id, score=c.score) for c in result.candidates
             ],

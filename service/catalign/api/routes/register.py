@@ -79,10 +79,25 @@ def query_options(
         bool, Query(description="Also estimate a uniform scale (binary/file bodies).")
     ] = False,
     seed: Annotated[int, Query(ge=0, le=MAX_SEED, description="RANSAC seed.")] = 0,
+    min_confidence: Annotated[
+        float | None,
+        Query(
+            ge=0.0,
+            le=1.0,
+            description="Confidence in [0, 1] the answer needs to be accepted (binary/file "
+            "bodies); below it the answer is still a 200, with accepted false and a reason.",
+        ),
+    ] = None,
 ) -> RegisterOptions:
     """Options given as query parameters (a JSON body carries them in the body instead)."""
     return parse_options(
-        {"top_k": top_k, "up": parse_up(up), "estimate_scale": estimate_scale, "seed": seed}
+        {
+            "top_k": top_k,
+            "up": parse_up(up),
+            "estimate_scale": estimate_scale,
+            "seed": seed,
+            "min_confidence": min_confidence,
+        }
     )
 
 
@@ -99,7 +114,11 @@ async def register(
     settings: SettingsDep,
     options: Annotated[RegisterOptions, Depends(query_options)],
 ) -> RegisterResponse:
-    """The best library model for the cloud, its model -> observation pose and inlier stats.
+    """The best library model for the cloud, its model -> observation pose and inlier stats,
+    the probability that the pose is right (``confidence``) and other distinct answers.
+
+    With ``min_confidence`` an answer below it is still a 200 with the pose, marked
+    ``accepted: false`` with a ``reason``: the caller decides (e.g. to look from another view).
 
     Clouds over the server's ``max_points`` (default 500,000), or that cannot be one chair in
     metres, are refused with 422; a full queue answers 503 before the body is read, and a
@@ -113,4 +132,6 @@ async def register(
         else:
             query = await decode_body(request, options, settings.max_points)
             result = await unless_disconnected(request, service.register(query, slot=slot))
-    return RegisterResponse.from_result(result, request_id_of(request))
+    return RegisterResponse.from_result(
+        result, request_id_of(request), min_confidence=query.options.min_confidence
+    )
