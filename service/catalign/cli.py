@@ -262,6 +262,10 @@ def calibrate(
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
+    samples: Annotated[
+        Path | None,
+        typer.Option(help="Refit from a run's samples.npz instead of registering views again."),
+    ] = None,
 ) -> None:
     """Fit the answers' confidence (a logistic regression) on views of the training chairs."""
     from catalign.data.shapes import SharedChairs
@@ -280,7 +284,9 @@ def calibrate(
             pose_modes=modes,
             max_shapes=max_shapes,  # type: ignore[arg-type]
         )
-        calibrator = run(config, SharedChairs(chairs_dir), LearnedExtractor(model_dir))
+        calibrator = run(
+            config, SharedChairs(chairs_dir), LearnedExtractor(model_dir), samples_file=samples
+        )
     typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
     typer.echo(f"calibrator written to {out}")
 

@@ -15,7 +15,7 @@ from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.registration.base import LibraryShape
-from catalign.registration.confidence import SIGNALS, find_calibrator
+from catalign.registration.confidence import SIGNALS, Calibrator, find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
 
 runner = CliRunner()
@@ -40,6 +40,14 @@ def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
     assert card["data"]["answers"] >= 4 and card["data"]["pose_modes"] == ["upright"]
     assert set(card["coefficients"]) == set(SIGNALS)
     assert 0.0 <= card["in_sample"]["ece"] <= 1.0
+
+    # Its samples are saved beside it: a refit from them needs no views and fits the same.
+    again = tmp_path / "again"
+    samples = str(out / "samples.npz")
+    refit = runner.invoke(app, ["calibrate", "--out", str(again), "--samples", samples])
+    assert refit.exit_code == 0, refit.output
+    refitted = Calibrator.load(again / "calibrator.json")
+    np.testing.assert_allclose(refitted.coef, calibrator.coef, rtol=1e-6)
 
     # The engine reads it from the weights' folder and every answer gets a probability.
     extractor = LearnedExtractor()

@@ -92,9 +92,13 @@ class Calibrator:
 
     def probability(self, evidence: Evidence) -> float:
         """The probability that the answer ``evidence`` describes is right."""
-        x = np.array([evidence.signals()[name] for name in SIGNALS])
-        logit = float(((x - self.mean) / self.scale) @ self.coef + self.intercept)
-        return 1.0 / (1.0 + math.exp(-max(min(logit, 50.0), -50.0)))
+        signals = evidence.signals()
+        return float(self.probabilities(np.array([[signals[name] for name in SIGNALS]]))[0])
+
+    def probabilities(self, rows: np.ndarray) -> np.ndarray:
+        """The probability of each row of :data:`SIGNALS` values."""
+        logits = ((rows - self.mean) / self.scale) @ self.coef + self.intercept
+        return 1.0 / (1.0 + np.exp(-np.clip(logits, -50.0, 50.0)))
 
     def save(self, folder: Path) -> Path:
         """Write ``folder/calibrator.json``; its path."""

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from catalign.data.shapes import Shape, SharedChairs
 from catalign.data.views import WORLD_UP, PoseMode
-from catalign.errors import InvalidInputError
+from catalign.errors import ConfigError, InvalidInputError
 from catalign.evaluation.metrics import (
     auroc,
     canonical_pose_error,
@@ -43,6 +43,7 @@ from catalign.registration.indexed import IndexedRegistrar
 
 # The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
 CALIBRATION_SEED = 2_000
+SAMPLES_FILE = "samples.npz"
 
 
 @dataclass(frozen=True)
@@ -66,14 +67,53 @@ class CalibrationConfig:
 
 @dataclass
 class Samples:
-    """Answers and their labels: one row of signals per answer."""
+    """Answers and their labels: one row of :data:`SIGNALS` per answer, whether it is right,
+    its kind (``"<mode>/<setting>/<winner|alternative>"``) and the chair it is a view of.
+    Saved beside the calibrator (``samples.npz``) so that it can be refitted without
+    registering the views again (``catalign calibrate --samples``)."""
 
-    evidence: list[Evidence] = field(default_factory=list)
+    rows: list[list[float]] = field(default_factory=list)
     right: list[bool] = field(default_factory=list)
-    kinds: list[str] = field(default_factory=list)  # "<mode>/<setting>/<winner|alternative>"
+    kinds: list[str] = field(default_factory=list)
+    chairs: list[str] = field(default_factory=list)
+
+    def add(self, evidence: Evidence, right: bool, kind: str, chair: str) -> None:
+        signals = evidence.signals()
+        self.rows.append([signals[name] for name in SIGNALS])
+        self.right.append(right)
+        self.kinds.append(kind)
+        self.chairs.append(chair)
 
     def matrix(self) -> np.ndarray:
-        return np.array([[e.signals()[name] for name in SIGNALS] for e in self.evidence])
+        return np.asarray(self.rows, dtype=np.float64).reshape(-1, len(SIGNALS))
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(
+            path,
+            signals=np.array(SIGNALS),
+            rows=self.matrix(),
+            right=np.array(self.right),
+            kinds=np.array(self.kinds),
+            chairs=np.array(self.chairs),
+        )
+
+    @classmethod
+    def load(cls, path: Path) -> Samples:
+        """Samples saved by :meth:`save`; a clear error when their signals are not this
+        code's."""
+        try:
+            data = np.load(path)
+        except (OSError, ValueError) as error:
+            raise ConfigError(f"cannot read calibration samples {path}: {error}") from None
+        if data["signals"].tolist() != list(SIGNALS):
+            raise ConfigError(f"the samples {path} hold other signals; collect them again")
+        return cls(
+            rows=data["rows"].tolist(),
+            right=data["right"].tolist(),
+            kinds=data["kinds"].tolist(),
+            chairs=data["chairs"].tolist(),
+        )
 
 
 def right_pose(
@@ -91,15 +131,12 @@ def label(
     kind: str,
 ) -> None:
     """Add the winner and each alternative of ``result`` to ``samples``."""
-    if result.evidence is not None:
-        samples.evidence.append(result.evidence)
-        samples.right.append(right_pose(result.pose, result.model_id, case, frames))
-        samples.kinds.append(f"{kind}/winner")
-    for other in result.alternatives:
-        if other.evidence is not None:
-            samples.evidence.append(other.evidence)
-            samples.right.append(right_pose(other.pose, other.model_id, case, frames))
-            samples.kinds.append(f"{kind}/alternative")
+    answers = [(result.evidence, result.pose, result.model_id, "winner")]
+    answers += [(a.evidence, a.pose, a.model_id, "alternative") for a in result.alternatives]
+    for evidence, pose, model_id, rank in answers:
+        if evidence is not None:
+            right = right_pose(pose, model_id, case, frames)
+            samples.add(evidence, right, f"{kind}/{rank}", case.shape_id)
 
 
 def collect(
@@ -136,7 +173,7 @@ def fit(samples: Samples, regularisation: float = 1.0) -> tuple[np.ndarray, ...]
     """A logistic regression on standardised signals: ``(mean, scale, coef, intercept)``."""
     from sklearn.linear_model import LogisticRegression
 
-    x, y = samples.matrix(), np.array(samples.right)
+    x, y = samples.matrix(), np.array(samples.right, dtype=bool)
     if len(set(y.tolist())) < 2:
         raise ValueError("calibration needs both right and wrong answers; use more views")
     mean, scale = x.mean(axis=0), x.std(axis=0)
@@ -162,22 +199,33 @@ def run(
     chairs: SharedChairs,
     extractor: FeatureExtractor,
     progress: bool = True,
+    samples_file: Path | None = None,
 ) -> Calibrator:
-    """Collect samples on the training chairs, fit, and save the calibrator to ``config.out``."""
+    """Collect samples on the training chairs (or read ``samples_file``), fit, and save the
+    calibrator and its samples to ``config.out``."""
     started = time.perf_counter()
-    ids = list(chairs.ids("train"))
-    ids = ids if config.max_shapes is None else ids[: config.max_shapes]
-    samples = collect(config, metric_shapes(chairs, ids), extractor, progress)
+    if samples_file is not None:
+        samples = Samples.load(samples_file)
+        source = f"samples read from {samples_file}"
+    else:
+        ids = list(chairs.ids("train"))
+        ids = ids if config.max_shapes is None else ids[: config.max_shapes]
+        samples = collect(config, metric_shapes(chairs, ids), extractor, progress)
+        source = f"{len(ids)} training chairs of the shared split (validation untouched)"
+    samples.save(config.out / SAMPLES_FILE)
     mean, scale, coef, intercept = fit(samples, config.regularisation)
-    calibrator = Calibrator(mean, scale, coef, intercept, card={})
-    probabilities = [calibrator.probability(e) for e in samples.evidence]
-    winners = [k.endswith("winner") for k in samples.kinds]
+    probabilities = Calibrator(mean, scale, coef, intercept, card={}).probabilities(
+        samples.matrix()
+    )
+    winners = np.array([k.endswith("winner") for k in samples.kinds])
+    right = np.array(samples.right, dtype=bool)
     card: dict[str, Any] = {
         "command": config.command(),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "seconds": round(time.perf_counter() - started, 1),
         "data": {
-            "chairs": f"{len(ids)} training chairs of the shared split (validation untouched)",
+            "chairs": source,
+            "distinct_chairs": len(set(samples.chairs)),
             "views": config.views,
             "seed": config.seed,
             "pose_modes": list(config.pose_modes),
@@ -185,11 +233,8 @@ def run(
             "by_kind": {k: samples.kinds.count(k) for k in sorted(set(samples.kinds))},
         },
         "right_means": "within 10 degrees and 5 cm (category-level metric)",
-        "in_sample": calibration_quality(probabilities, samples.right),
-        "in_sample_winners": calibration_quality(
-            [p for p, w in zip(probabilities, winners, strict=True) if w],
-            [r for r, w in zip(samples.right, winners, strict=True) if w],
-        ),
+        "in_sample": calibration_quality(probabilities, right),
+        "in_sample_winners": calibration_quality(probabilities[winners], right[winners]),
         "coefficients": dict(zip(SIGNALS, coef.round(4).tolist(), strict=True)),
     }
     calibrator = Calibrator(mean, scale, coef, intercept, card=card)
