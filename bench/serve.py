@@ -34,9 +34,19 @@ process and the server): the timings mean something only when that share is near
 
 Prints a markdown table and writes it to ``bench/results/serve.md``.
 
+With ``--replicas 1,2`` it measures replicas behind HAProxy instead (``haproxy`` installed;
+see ``docs/deploy-replicas.md``): as many ``catalign serve --read-only`` processes as the largest
+count, each with one worker of one thread, share the default library behind one HAProxy
+(``tests/deploy/_replicas.py``, the set-up the deployment tests use), and the SDK registers the
+same query through HAProxy at concurrency 8. Each count is measured with the replicas beyond it
+put in maintenance on HAProxy's stats socket (idle, so they use no CPU), in ``--rounds`` rounds
+with a rotating order, so every count sees the same machine. The table goes to
+``bench/results/serve-replicas.md``, with the req/s of the largest count over the smallest.
+
     .venv/bin/python bench/serve.py [--concurrency 1 2 4 16] [--requests 8 12 16 32]
         [--threads-per-worker 1 2] [--requests-scale 1.0] [--top-k 5] [--seed 0]
         [--points 20000] [--workers 2] [--rounds 2] [--engine-runs 3]
+    .venv/bin/python bench/serve.py --replicas 1,2 [--concurrency 8] [--requests 48] [--rounds 2]
 """
 
 from __future__ import annotations
@@ -70,6 +80,7 @@ from catalign_client import Client
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).parent / "results" / "serve.md"
+REPLICA_RESULTS = Path(__file__).parent / "results" / "serve-replicas.md"
 MODEL_DIR = ROOT / "model_store"
 LIBRARY = MODEL_DIR / "library"
 UP = (0.0, 0.0, 1.0)
@@ -328,15 +339,144 @@ def serve_run(
     return samples, ready_s, foreign
 
 
+def replica_counts(text: str) -> list[int]:
+    """``--replicas 1,2``: distinct positive replica counts, in the given order."""
+    try:
+        counts = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected counts such as 1,2, got {text!r}") from None
+    if min(counts) < 1 or len(set(counts)) != len(counts):
+        raise argparse.ArgumentTypeError(f"replica counts must differ and be >= 1: {text!r}")
+    return counts
+
+
+def replicas_main(args: argparse.Namespace, counts: list[int], points: np.ndarray) -> None:
+    """``--replicas``: sdk-binary req/s through HAProxy for each replica count (see the module
+    docstring), printed and written to ``bench/results/serve-replicas.md``."""
+    sys.path.insert(0, str(ROOT))  # the set-up is the deployment tests' own module
+    from tests.deploy._replicas import Deployment
+
+    replicas: list[int] = args.replicas
+    load_before = load_average()
+    wall_started = time.perf_counter()
+    samples: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
+    walls: dict[tuple[int, int], float] = {}
+    cpu: dict[int, list[float]] = {n: [0.0, 0.0, 0.0] for n in replicas}
+    with (
+        tempfile.TemporaryDirectory(prefix="catalign-replicas-") as work,
+        Deployment(
+            LIBRARY,
+            MODEL_DIR,
+            Path(work),
+            readers=max(replicas),
+            writer=False,
+            workers=1,
+            threads_per_worker=1,
+            env={"CATALIGN_DEADLINE_S": str(REQUEST_TIMEOUT_S)},
+        ) as deployment,
+    ):
+        proxy = deployment.proxy
+        pids = [proxy.process.pid, *(r.process.pid for r in deployment.readers if r.process)]
+        client = Client(
+            deployment.url,
+            timeout=REQUEST_TIMEOUT_S,
+            retries=0,
+            transport=httpx.HTTPTransport(limits=httpx.Limits(keepalive_expiry=KEEPALIVE_S)),
+        )
+
+        def call() -> tuple[float, float]:
+            result = client.align(points, top_k=args.top_k, up=UP, seed=args.seed)
+            return result.timings_ms["total"], result.timings_ms.get("queue", 0.0)
+
+        def serve_with(count: int) -> None:
+            """Put the readers beyond ``count`` in maintenance, the others back in service."""
+            for index, reader in enumerate(deployment.readers):
+                state = "ready" if index < count else "maint"
+                proxy.command(f"set server readers/{reader.name} state {state}")
+                proxy.wait_status(f"readers/{reader.name}", "UP" if state == "ready" else "MAINT")
+
+        try:
+            serve_with(max(replicas))
+            run_batch(call, 2 * max(args.concurrency), max(args.concurrency))  # warm-up
+            for concurrency, count in zip(args.concurrency, counts, strict=True):
+                for r, chunk in enumerate(_split(count, args.rounds)):
+                    for n in replicas[r % len(replicas) :] + replicas[: r % len(replicas)]:
+                        serve_with(n)
+                        before = _cpu_seconds(*pids)
+                        results, wall = run_batch(call, chunk, concurrency)
+                        after = _cpu_seconds(*pids)
+                        for i, (a, b) in enumerate(zip(before, after, strict=True)):
+                            cpu[n][i] += b - a
+                        samples.setdefault((n, concurrency), []).extend(results)
+                        walls[n, concurrency] = walls.get((n, concurrency), 0.0) + wall
+                        print(
+                            f"replicas={n} c={concurrency}: {chunk} requests in {wall:.1f} s "
+                            f"(round {r + 1})",
+                            file=sys.stderr,
+                        )
+            answered = {
+                r.name: proxy.stats()[f"readers/{r.name}"]["hrsp_2xx"] for r in deployment.readers
+            }
+        finally:
+            client.close()
+    elapsed = time.perf_counter() - wall_started
+
+    lines = [
+        "# Replicas behind HAProxy (20k-point query, loopback)",
+        "",
+        f"{platform.machine()} {_cpu_model()}, {os.cpu_count()} CPUs; "
+        f"{max(replicas)} `catalign serve --read-only --workers 1` processes "
+        "(`CATALIGN_THREADS_PER_WORKER=1`) sharing the default library "
+        f"({len(_library_ids())} models) behind HAProxy (`tests/deploy/_replicas.py`: leastconn, "
+        "2 requests per replica at once, the rest queued in HAProxy); a count of n serves with "
+        "the first n, the others in maintenance; the SDK (`Client.align`, binary) through "
+        f"HAProxy, query {len(points)} points, top_k={args.top_k}, seed={args.seed}, up=+Z; "
+        f"{args.rounds} interleaved rounds; load average {load_before:.2f} before, "
+        f"{load_average():.2f} after; {elapsed / 60:.1f} min in all. Answers per replica: "
+        + ", ".join(f"{name} {count}" for name, count in answered.items())
+        + ".",
+        "",
+        "| replicas | concurrency | requests | req/s | median ms | p95 ms | "
+        "server total median ms | other processes' CPU share |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    rates: dict[tuple[int, int], float] = {}
+    for n in replicas:
+        busy, total, ours = cpu[n]
+        foreign = max(0.0, busy - ours) / total if total > 0 else float("nan")
+        for concurrency in args.concurrency:
+            cell = np.array(samples[n, concurrency])
+            rates[n, concurrency] = len(cell) / walls[n, concurrency]
+            lines.append(
+                f"| {n} | {concurrency} | {len(cell)} | {rates[n, concurrency]:.2f} | "
+                f"{np.median(cell[:, 0]):.0f} | {np.percentile(cell[:, 0], 95):.0f} | "
+                f"{np.median(cell[:, 1]):.0f} | {foreign:.0%} |"
+            )
+    if len(replicas) >= 2:
+        low, high = min(replicas), max(replicas)
+        ratios = ", ".join(
+            f"c={c}: **{rates[high, c] / rates[low, c]:.2f}x**" for c in args.concurrency
+        )
+        lines += ["", f"req/s with {high} replicas over {low}: {ratios}."]
+    publish("\n".join(lines) + "\n", REPLICA_RESULTS)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--concurrency", type=int, nargs="+", default=[1, 2, 4, 16])
+    parser.add_argument(
+        "--concurrency", type=int, nargs="+", help="Default 1 2 4 16; 8 with --replicas."
+    )
     parser.add_argument(
         "--requests",
         type=int,
         nargs="+",
-        default=[8, 12, 16, 32],
-        help="Timed requests per transport at each concurrency level (same order).",
+        help="Timed requests per transport at each concurrency level (same order; default "
+        "8 12 16 32), or per replica count and level with --replicas (default 48).",
+    )
+    parser.add_argument(
+        "--replicas",
+        type=replica_counts,
+        help="Replica counts to compare behind HAProxy, e.g. 1,2 (single-worker replicas).",
     )
     parser.add_argument(
         "--threads-per-worker",
@@ -356,6 +496,10 @@ def main() -> None:
         "--engine-runs", type=int, default=3, help="Direct engine runs per thread count (0: none)."
     )
     args = parser.parse_args()
+    if args.concurrency is None:
+        args.concurrency = [8] if args.replicas else [1, 2, 4, 16]
+    if args.requests is None:
+        args.requests = [48] * len(args.concurrency) if args.replicas else [8, 12, 16, 32]
     if len(args.requests) != len(args.concurrency):
         parser.error("--requests needs one count per --concurrency level")
     if len(set(args.threads_per_worker)) != len(args.threads_per_worker):
@@ -366,6 +510,9 @@ def main() -> None:
     thread_counts: list[int] = args.threads_per_worker
 
     points = query_cloud(count=args.points)
+    if args.replicas:
+        replicas_main(args, counts, points)
+        return
     binary_bytes = points.size * 4
     json_bytes = len(json.dumps({"points": points.tolist(), "top_k": args.top_k}))
     encode_ms = {
@@ -471,15 +618,18 @@ def main() -> None:
     publish(table, RESULTS)
 
 
-def _cpu_seconds(server_pid: int) -> tuple[float, float, float]:
+def _cpu_seconds(*server_pids: int) -> tuple[float, float, float]:
     """CPU seconds so far: busy and in all (every core, from ``/proc/stat``), and used by this
-    process plus the server (client and server together); NaN where ``/proc`` is missing."""
+    process plus the server processes (client and servers together); NaN where ``/proc`` is
+    missing."""
     tick = os.sysconf("SC_CLK_TCK")
     try:
         fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
         user, nice, system, idle, iowait, irq, softirq, steal = fields
-        stat = Path(f"/proc/{server_pid}/stat").read_text().rsplit(")", 1)[1].split()
-        server = (int(stat[11]) + int(stat[12])) / tick  # utime, stime (fields 14 and 15)
+        server = 0.0
+        for pid in server_pids:
+            stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            server += (int(stat[11]) + int(stat[12])) / tick  # utime, stime (fields 14 and 15)
     except (OSError, ValueError, IndexError):
         return float("nan"), float("nan"), float("nan")
     busy = (user + nice + system + irq + softirq + steal) / tick

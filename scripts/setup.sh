@@ -29,6 +29,16 @@ if [ "${1:-}" = "--test" ] && { ! command -v chromium >/dev/null 2>&1 || ! comma
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null
 fi
 
+# The replica tests run HAProxy in front of several servers; install it with apt where it is
+# missing.
+if [ "${1:-}" = "--test" ] && ! command -v haproxy >/dev/null 2>&1 && [ ! -x /usr/sbin/haproxy ]; then
+    echo "setup: installing Debian package haproxy (replica tests behind a load balancer)"
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq haproxy >/dev/null
+fi
+
 # The image test builds and runs the image with Podman (runc runtime) on a Debian base made by
 # mmdebstrap; install them with apt where they are missing.
 if [ "${1:-}" = "--test" ] && { ! command -v podman >/dev/null 2>&1 || ! command -v runc >/dev/null 2>&1 || ! command -v mmdebstrap >/dev/null 2>&1; }; then

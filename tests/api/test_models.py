@@ -10,9 +10,12 @@ from typing import TYPE_CHECKING
 
 import httpx
 import numpy as np
+import pytest
 import trimesh
 
+from catalign.api.service import RegistrationService
 from catalign.data.shapes import procedural_shape
+from catalign.library.index import remove
 
 if TYPE_CHECKING:
     from tests.api.conftest import View
@@ -100,6 +103,29 @@ def test_changes_by_another_process_are_served_without_a_restart(
         listed = http.get("/models").json()
         assert "chair-9" in {m["model_id"] for m in listed["models"]} and listed["count"] == 4
         assert http.get("/models/chair-9").status_code == 200
+
+
+def test_a_change_on_disk_is_loaded_once(
+    serve: Callable, library_copy: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The first request after another process changed the library loads it; later ones do not
+    (each load reads every entry, under the lock that serialises library changes)."""
+    loads: list[Path] = []
+    reload = RegistrationService._reload
+
+    def counted(self: RegistrationService, extractor: object) -> object:
+        loads.append(self.settings.library)
+        return reload(self, extractor)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(RegistrationService, "_reload", counted)
+    with (
+        serve(library=library_copy, warmup=False) as server,
+        httpx.Client(base_url=server.url, timeout=60) as http,
+    ):
+        remove(library_copy, ["proc-0002"])  # as `catalign library remove` would
+        for _ in range(3):
+            assert http.get("/models").json()["count"] == 2
+    assert loads == [library_copy]
 
 
 def test_a_models_points_come_as_float32_thinned_to_the_limit(

@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+import catalign.library.index as index
 import catalign.library.store as store
 from catalign.errors import LibraryCorruptError, LibraryError, LibraryMismatchError
 from catalign.library import add, build, info, load, remove
@@ -174,6 +175,47 @@ def test_a_missing_entry_file_is_named(small_library, extractor):
     (small_library / info(small_library).entries["a"].file).unlink()
     with pytest.raises(LibraryCorruptError, match=r"entry 'a'.*is missing"):
         load(small_library, extractor.fingerprint)
+
+
+def _write_while_reading(monkeypatch, model_id, before_read, after_read=lambda: None):
+    """Make a writer run ``before_read`` just before a reader reads ``model_id``'s file (the
+    reader holds the manifest it read first) and ``after_read`` right after that read."""
+    real_read = index.read_entry
+
+    def racing_read(library_dir, wanted, record):
+        if wanted != model_id or racing_read.done:
+            return real_read(library_dir, wanted, record)
+        racing_read.done = True
+        before_read()
+        try:
+            return real_read(library_dir, wanted, record)
+        finally:
+            after_read()
+
+    racing_read.done = False
+    monkeypatch.setattr(index, "read_entry", racing_read)
+
+
+def test_a_reader_loads_the_new_manifest_when_a_writer_deleted_an_entry_under_it(
+    small_library, extractor, monkeypatch
+):
+    _write_while_reading(monkeypatch, "b", lambda: remove(small_library, ["b"]))
+    assert load(small_library, extractor.fingerprint).ids == ["a"]
+
+
+def test_an_entry_removed_and_added_back_within_a_second_is_not_corruption(
+    small_library, files, extractor, monkeypatch
+):
+    manifest = (small_library / "manifest.json").read_bytes()
+    monkeypatch.setattr(index, "utc_now", lambda: info(small_library).updated)  # same second
+    _write_while_reading(
+        monkeypatch,
+        "b",
+        lambda: remove(small_library, ["b"]),
+        lambda: add(small_library, [files.root / "b.npy"], extractor, progress=False),
+    )
+    assert load(small_library, extractor.fingerprint).ids == ["a", "b"]
+    assert (small_library / "manifest.json").read_bytes() == manifest  # the very same bytes
 
 
 def test_garbage_manifest(small_library, extractor):

@@ -184,6 +184,7 @@ class RegistrationService:
                 logger.warning("library changed on disk but cannot be loaded: %s", error)
                 self._stamp = stamp
                 return
+            self._stamp = stamp  # read before the load: a change during it is loaded next time
             self._engine = self._make_engine(engine.extractor, library)
             self.metrics.library_models.set(len(library))
             logger.info("library changed on disk: now %d models", len(library))

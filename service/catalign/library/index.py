@@ -344,14 +344,19 @@ def _check_new_ids(
 
 
 def _read_entries(library_dir: Path, manifest: Manifest, raw: bytes) -> list[LibraryEntry] | None:
-    """Every entry of ``manifest``; None if a file vanished because a writer replaced it."""
+    """Every entry of ``manifest``; None if a file vanished because a writer replaced it.
+
+    A missing file is corruption only while the manifest that names it is still current and the
+    file is still missing: a writer that removed the entry and added it back within the same
+    second wrote a manifest with the very same bytes, and the file exists again.
+    """
     entries = []
     for model_id in manifest.ids:
         record = manifest.entries[model_id]
         try:
             entries.append(read_entry(library_dir, model_id, record))
         except FileNotFoundError:
-            if _manifest_changed(library_dir, raw):
+            if _manifest_changed(library_dir, raw) or (library_dir / record.file).is_file():
                 return None
             raise LibraryCorruptError(
                 f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
