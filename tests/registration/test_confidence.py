@@ -28,6 +28,7 @@ def _evidence(score: float = 0.5, model_margin: float = 0.5) -> Evidence:
         fitness=0.8,
         rmse=0.5,
         inlier_ratio=0.8,
+        span=0.9,
         up_given=True,
         up_belief=1.0,
         keypoints=2_000,

@@ -24,7 +24,7 @@ import numpy as np
 from catalign.errors import ConfigError
 
 CALIBRATOR_FILE = "calibrator.json"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 # Margins are capped: an answer ten times behind another is as wrong as one twice behind.
 MAX_MARGIN = 2.0
 
@@ -37,7 +37,9 @@ class Evidence:
     ``explained`` and ``covered`` the two shares it is the product of; ``heading_margin`` and
     ``model_margin`` the best score of a pose of the same model turned another way, and of
     another model, over its own; ``fitness``, ``rmse`` (in ICP distances) and ``inlier_ratio``
-    the ICP statistics of the final pose; ``up_given`` and ``up_belief`` where its up came
+    the ICP statistics of the final pose; ``span`` the smallest share, over the model's three
+    axes, of the model's extent that the view spans under the final pose (a hidden side leaves
+    the category-level centre uncertain); ``up_given`` and ``up_belief`` where its up came
     from; ``keypoints`` the query's key points.
     """
 
@@ -49,6 +51,7 @@ class Evidence:
     fitness: float
     rmse: float
     inlier_ratio: float
+    span: float
     up_given: bool
     up_belief: float
     keypoints: int
@@ -64,6 +67,7 @@ class Evidence:
             "fitness": self.fitness,
             "rmse": self.rmse,
             "inlier_ratio": self.inlier_ratio,
+            "span": min(self.span, 1.5),
             "up_given": float(self.up_given),
             "up_belief": self.up_belief,
             "log_keypoints": math.log(max(self.keypoints, 1)),
@@ -74,7 +78,7 @@ class Evidence:
 
 
 SIGNALS = tuple(
-    Evidence(0, 0, 0, 0, 0, 0, 0, 0, False, 0, 1).signals()  # the names, in order
+    Evidence(0, 0, 0, 0, 0, 0, 0, 0, 0, False, 0, 1).signals()  # the names, in order
 )
 
 

@@ -90,17 +90,18 @@ class EngineConfig(BaseModel):
     measured as accurate and a third faster (``bench/tradeoff.py``)."""
     verify_top: int = Field(default=32, ge=1)
     """Poses, best by the surface check, that get the coverage check."""
-    transfer_poses: int = Field(default=4, ge=0)
+    transfer_poses: int = Field(default=0, ge=0)
     """Best verified poses carried over to other shortlisted models (every model shares the
-    canonical frame; the observed chair's own CAD may match too poorly to be posed itself)."""
+    canonical frame; the observed chair's own CAD may match too poorly to be posed itself).
+    4 picks the observed chair's own CAD 3 more times in 108 but loses 2 poses within 5 cm
+    (``bench/results/tradeoff-transfer.md``): off by default."""
     transfer_models: int = Field(default=5, ge=0)
     """Shortlisted models, best first, the poses are carried over to."""
-    refine: int = Field(default=4, ge=1)
-    """Distinct answers (another model, or the same one turned more than 30 degrees) whose
-    best pose gets ICP; the best refined one wins."""
+    refine: int = Field(default=3, ge=1)
+    """Best poses that get ICP (several starts of one answer find its best fit)."""
     alternatives: int = Field(default=3, ge=0)
-    """Other distinct answers returned beside the winner, among the refined ones (so at most
-    ``refine - 1``)."""
+    """Other distinct answers (another model, or the same one turned more than 30 degrees)
+    returned beside the winner; the best pose of each also gets ICP."""
     exact_fitness: float = Field(default=0.9, ge=0, le=1)
     """The share of the query within one ICP distance of the model above which the model is
     taken to be the observed instance itself, and its fitted pose is not recentred."""

@@ -51,7 +51,8 @@ from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.distance_grid import CELL_VOXELS
-from catalign.geometry.se3 import scale_of
+from catalign.geometry.se3 import scale_of, transform
+from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
 from catalign.registration.alignment import point_cloud
 from catalign.registration.answers import best_other, distinct
@@ -185,13 +186,20 @@ class Engine:
                 "(is it a whole object, in metres?)"
             )
 
-        # Refine the best pose of each of the leading distinct answers by ICP and score them
-        # again; the best one wins, the next ones are the alternatives.
+        # Refine the best poses by ICP and score them again: the best one wins. The best pose
+        # of each further distinct answer is refined too: the alternatives.
         with clock("icp_score"):
-            leading = distinct(found, config.refine, _scored)
-            refined = [(search, self._refined(search, item)) for search, item in leading]
-            refined.sort(key=lambda pair: -pair[1].score)
-            answers = distinct(refined, 1 + config.alternatives, _scored)
+            best = found[: config.refine]
+            others = [
+                pair
+                for pair in distinct(found, 1 + config.alternatives, _scored)
+                if not any(pair is chosen for chosen in best)
+            ]
+            refined = [(search, self._refined(search, item)) for search, item in best + others]
+            winner = max(refined[: len(best)], key=lambda pair: pair[1].score)
+            rest = sorted((p for p in refined if p is not winner), key=lambda p: -p[1].score)
+            answers = distinct([winner, *rest], 1 + config.alternatives, _scored)
+            leading = best + others
 
         # Finish each answer: the category fit (another instance, up known), its statistics,
         # and the evidence its confidence is read from.
@@ -299,6 +307,7 @@ class Engine:
             fitness=float(fit.fitness),
             rmse=float(fit.inlier_rmse) / self.icp_distance,
             inlier_ratio=len(fit.correspondence_set) / len(search.keypoints),
+            span=_spanned(self.library[pose.model_id], pose.transform, search.keypoints),
             up_given=search.orientation.given,
             up_belief=search.orientation.belief,
             keypoints=len(search.keypoints),
@@ -367,6 +376,14 @@ class _Finished:
 
 def _scored(pair: tuple[_Search, Scored]) -> Scored:
     return pair[1]
+
+
+def _spanned(model: LibraryEntry, pose: np.ndarray, keypoints: np.ndarray) -> float:
+    """The smallest share, over the model's axes, of its extent that the key points span in
+    its frame under ``pose`` (2nd to 98th percentile: stray points do not stretch it)."""
+    local = transform(keypoints, np.linalg.inv(pose))
+    low, high = np.percentile(local, [2.0, 98.0], axis=0)
+    return float(np.min((high - low) / np.maximum(model.size, 1e-6)))
 
 
 @dataclass(eq=False)
