@@ -5,8 +5,8 @@ mode), pools each setting's cases, and reports the expected calibration error (1
 AUROC of right against wrong, what gating at confidence 0.8 keeps (the share right among the
 kept answers, and their share of all), and, among answers turned from the truth by more than
 45 degrees, the share whose right pose is among the alternatives. Prints a markdown table,
-writes it to ``bench/results/calibration.md`` and draws the reliability diagram (confidence
-bins against the share right) to ``docs/reliability.png``.
+writes it to ``bench/results/calibration-upright.md`` (``--out``) and draws the reliability
+diagram (confidence bins against the share right) to ``docs/reliability.png``.
 
     .venv/bin/python bench/calibration.py docs/results/evaluate-learned-upright-seed{0,1}.json
 """
@@ -27,7 +27,7 @@ from catalign.evaluation.report import confidence_columns
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-RESULTS = Path(__file__).parent / "results" / "calibration.md"
+RESULTS = Path(__file__).parent / "results" / "calibration-upright.md"
 DIAGRAM = Path(__file__).parents[1] / "docs" / "reliability.png"
 COLUMNS = ("ECE", "AUROC", "conf>=0.8 right", "conf>=0.8 share", "turns rescued")
 
@@ -78,6 +78,7 @@ def main() -> None:
     parser.add_argument("reports", type=Path, nargs="+", help="catalign evaluate JSON reports")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--diagram", type=Path, default=DIAGRAM)
+    parser.add_argument("--title", default="reliability", help="The diagram's title.")
     args = parser.parse_args()
     reports = [json.loads(path.read_text()) for path in args.reports]
     by_setting = pooled(reports)
@@ -101,7 +102,7 @@ def main() -> None:
         ]
         lines.append(f"| {setting} | {len(cases)} | {right:.1f} | " + " | ".join(cells) + " |")
     publish("\n".join(lines) + "\n", args.out)
-    draw(by_setting, f"reliability, {names}", args.diagram)
+    draw(by_setting, args.title, args.diagram)
     print(f"reliability diagram written to {args.diagram}")
 
 
