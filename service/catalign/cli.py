@@ -284,9 +284,9 @@ def calibrate(
             pose_modes=modes,
             max_shapes=max_shapes,  # type: ignore[arg-type]
         )
-        calibrator = run(
-            config, SharedChairs(chairs_dir), LearnedExtractor(model_dir), samples_file=samples
-        )
+        # A refit from saved samples needs no weights (nor their current calibrator).
+        extractor = None if samples is not None else LearnedExtractor(model_dir)
+        calibrator = run(config, SharedChairs(chairs_dir), extractor, samples_file=samples)
     typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
     typer.echo(f"calibrator written to {out}")
 

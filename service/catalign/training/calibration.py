@@ -197,14 +197,16 @@ def calibration_quality(probabilities: Sequence[float], right: Sequence[bool]) -
 def run(
     config: CalibrationConfig,
     chairs: SharedChairs,
-    extractor: FeatureExtractor,
+    extractor: FeatureExtractor | None,
     progress: bool = True,
     samples_file: Path | None = None,
 ) -> Calibrator:
-    """Collect samples on the training chairs (or read ``samples_file``), fit, and save the
-    calibrator and its samples to ``config.out``."""
+    """Collect samples on the training chairs with ``extractor`` (or read ``samples_file``),
+    fit, and save the calibrator and its samples to ``config.out``."""
     started = time.perf_counter()
-    if samples_file is not None:
+    if samples_file is not None or extractor is None:
+        if samples_file is None:
+            raise ConfigError("calibration needs weights to register views, or --samples")
         samples = Samples.load(samples_file)
         source = f"samples read from {samples_file}"
     else:
@@ -225,7 +227,7 @@ def run(
         "seconds": round(time.perf_counter() - started, 1),
         "data": {
             "chairs": source,
-            "distinct_chairs": len(set(samples.chairs)),
+            "chair_ids": sorted(set(samples.chairs)),
             "views": config.views,
             "seed": config.seed,
             "pose_modes": list(config.pose_modes),
