@@ -24,7 +24,7 @@ import numpy as np
 from catalign.errors import ConfigError
 
 CALIBRATOR_FILE = "calibrator.json"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 2
 # Margins are capped: an answer ten times behind another is as wrong as one twice behind.
 MAX_MARGIN = 2.0
 
@@ -40,9 +40,7 @@ class Evidence:
     the ICP statistics of the final pose; ``span`` the smallest share, over the model's three
     axes, of the model's extent that the view spans under the final pose (a hidden side leaves
     the category-level centre uncertain); ``up_given`` and ``up_belief`` where its up came
-    from; ``keypoints`` the query's key points; ``unfitted`` whether it is a loose fit (another
-    instance) that did not get the category fit that places the winner's frame (an
-    alternative's).
+    from; ``keypoints`` the query's key points.
     """
 
     score: float
@@ -57,7 +55,6 @@ class Evidence:
     up_given: bool
     up_belief: float
     keypoints: int
-    unfitted: bool = False
 
     def signals(self) -> dict[str, float]:
         """The regression's inputs, by name: margins capped, the key points on a log scale."""
@@ -74,7 +71,6 @@ class Evidence:
             "up_given": float(self.up_given),
             "up_belief": self.up_belief,
             "log_keypoints": math.log(max(self.keypoints, 1)),
-            "unfitted": float(self.unfitted),
         }
 
     def to_json(self) -> dict[str, Any]:

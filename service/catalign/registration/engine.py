@@ -208,17 +208,10 @@ class Engine:
             tried = [item for _, item in refined]
             tried += [item for _, item in found if id(item) not in sources]
             finished = [
-                self._finish(
-                    search,
-                    item,
-                    tried,
-                    # The category fit (3 ICPs) for the winner only: an alternative's pose
-                    # is a lead for the caller, its centre the fitted one.
-                    alternative=rank > 0,
-                    estimate_scale=estimate_scale,
-                    floor_level=oriented.floor_level if search is searches[0] else None,
-                )
-                for rank, (search, item) in enumerate(answers)
+                self._finish(search, item, tried, estimate_scale, oriented.floor_level)
+                if search is searches[0]
+                else self._finish(search, item, tried, estimate_scale, None)
+                for search, item in answers
             ]
 
         # Answer: the winner, its fit, its alternatives and every candidate's best score.
@@ -289,19 +282,16 @@ class Engine:
         search: _Search,
         item: Scored,
         tried: list[Scored],
-        *,
-        alternative: bool,
         estimate_scale: bool,
         floor_level: float | None,
     ) -> _Finished:
-        """A refined answer made final: the winner, with an up and no scale, if it is another
-        instance (a loose fit), is given the observed chair's frame (the category fit); then
-        its statistics, and the evidence (against every pose ``tried``) and confidence."""
+        """A refined answer made final: with an up, another instance (a loose fit) is given
+        the observed chair's frame (the category fit); then its statistics, and the evidence
+        (against every pose ``tried``) and confidence of it."""
         pose = item.hypothesis
         fit = self.refiner.fit(pose, search.query)
         turn = search.turn
-        loose = turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness
-        if loose and not alternative:
+        if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
             pose = self.category_fitter.fit(
                 pose, search.query, search.keypoints, turn, floor_level=floor_level
             )
@@ -321,7 +311,6 @@ class Engine:
             up_given=search.orientation.given,
             up_belief=search.orientation.belief,
             keypoints=len(search.keypoints),
-            unfitted=loose and alternative,
         )
         calibrator = self.extractor.confidence
         confidence = None if calibrator is None else calibrator.probability(evidence)

@@ -14,6 +14,7 @@ in-sample quality.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -222,15 +223,14 @@ def run(
     winners = np.array([k.endswith("winner") for k in samples.kinds])
     right = np.array(samples.right, dtype=bool)
     card: dict[str, Any] = {
-        "command": config.command(),
+        "command": config.command()
+        + ("" if samples_file is None else f" --samples {samples_file}"),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "seconds": round(time.perf_counter() - started, 1),
         "data": {
             "chairs": source,
             "chair_ids": sorted(set(samples.chairs)),
-            "views": config.views,
-            "seed": config.seed,
-            "pose_modes": list(config.pose_modes),
+            **_collection(config, samples_file),
             "answers": len(samples.right),
             "by_kind": {k: samples.kinds.count(k) for k in sorted(set(samples.kinds))},
         },
@@ -242,3 +242,18 @@ def run(
     calibrator = Calibrator(mean, scale, coef, intercept, card=card)
     calibrator.save(config.out)
     return calibrator
+
+
+def _collection(config: CalibrationConfig, samples_file: Path | None) -> dict[str, Any]:
+    """How the samples were collected: this run's views, seed and modes, or, for a refit,
+    those of the run that collected them (its card beside the samples)."""
+    if samples_file is None:
+        return {"views": config.views, "seed": config.seed, "pose_modes": list(config.pose_modes)}
+    card_path = samples_file.parent / "calibrator.json"
+    if not card_path.is_file():
+        return {"collected_by": "unknown (no calibrator.json beside the samples)"}
+    card = json.loads(card_path.read_text()).get("card", {})
+    data = card.get("data", {})
+    return {"collected_by": card.get("command", "unknown")} | {
+        key: data[key] for key in ("views", "seed", "pose_modes") if key in data
+    }
