@@ -22,6 +22,7 @@ import matplotlib
 import numpy as np
 from _report import publish
 
+from catalign.evaluation.metrics import reliability_bins
 from catalign.evaluation.report import confidence_columns
 
 matplotlib.use("Agg")
@@ -41,16 +42,11 @@ def pooled(reports: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
     return cases
 
 
-def reliability(cases: list[dict[str, Any]], bins: int = 10) -> list[tuple[float, float, int]]:
-    """(mean confidence, share right, count) of each non-empty equal-width bin."""
+def reliability(cases: list[dict[str, Any]]) -> list[tuple[float, float, int]]:
+    """The reliability diagram's points of ``cases`` (a refused view: confidence 0, wrong)."""
     p = np.array([c.get("confidence") or 0.0 for c in cases])
     right = np.array([bool(c.get("right")) for c in cases])
-    which = np.minimum((p * bins).astype(int), bins - 1)
-    return [
-        (float(p[which == b].mean()), float(right[which == b].mean()), int((which == b).sum()))
-        for b in range(bins)
-        if np.any(which == b)
-    ]
+    return reliability_bins(p, right)
 
 
 def draw(by_setting: dict[str, list[dict[str, Any]]], title: str, path: Path) -> None:

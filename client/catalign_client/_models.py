@@ -33,8 +33,26 @@ class Candidate:
     score: float
 
 
+class _Posed:
+    """The rotation and translation of a ``pose`` (4x4, model -> observation) with a
+    ``scale``."""
+
+    pose: np.ndarray
+    scale: float
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The 3x3 rotation, with any estimated scale divided out."""
+        return self.pose[:3, :3] / self.scale
+
+    @property
+    def translation(self) -> np.ndarray:
+        """The (3,) translation of the model origin in the observation frame."""
+        return self.pose[:3, 3].copy()
+
+
 @dataclass(frozen=True, eq=False)
-class Alternative:
+class Alternative(_Posed):
     """Another distinct answer the server found: another model, or the same one turned by more
     than 30 degrees (e.g. a nearly symmetric chair seen back to front).
 
@@ -51,16 +69,6 @@ class Alternative:
     score: float
     fitness: float
     confidence: float | None = None
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """The 3x3 rotation, with any estimated scale divided out."""
-        return self.pose[:3, :3] / self.scale
-
-    @property
-    def translation(self) -> np.ndarray:
-        """The (3,) translation of the model origin in the observation frame."""
-        return self.pose[:3, 3].copy()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, the pose as nested lists (the wire format)."""
@@ -88,7 +96,7 @@ class Alternative:
 
 
 @dataclass(frozen=True, eq=False)
-class AlignResult:
+class AlignResult(_Posed):
     """The best library model for a query cloud, its pose and inlier statistics.
 
     ``pose`` is a read-only 4x4 float64 matrix mapping model coordinates (of the library entry's
@@ -130,16 +138,6 @@ class AlignResult:
     accepted: bool = True
     reason: str | None = None
     alternatives: list[Alternative] = field(default_factory=list)
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """The 3x3 rotation, with any estimated scale divided out."""
-        return self.pose[:3, :3] / self.scale
-
-    @property
-    def translation(self) -> np.ndarray:
-        """The (3,) translation of the model origin in the observation frame."""
-        return self.pose[:3, 3].copy()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, the pose as nested lists (the wire format)."""

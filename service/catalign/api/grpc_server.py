@@ -137,7 +137,7 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
     """The gRPC form of an HTTP answer, so that both carry the same fields and values."""
     return catalign_pb2.RegisterReply(
         model_id=answer.model_id,
-        pose=[v for row in answer.pose for v in row],
+        pose=_row_major(answer.pose),
         scale=answer.scale,
         fitness=answer.fitness,
         inlier_rmse=answer.inlier_rmse,
@@ -152,7 +152,7 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
         alternatives=[
             catalign_pb2.Alternative(
                 model_id=a.model_id,
-                pose=[v for row in a.pose for v in row],
+                pose=_row_major(a.pose),
                 scale=a.scale,
                 score=a.score,
                 fitness=a.fitness,
@@ -166,6 +166,11 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
         timings_ms=answer.timings_ms,
         request_id=answer.request_id,
     )
+
+
+def _row_major(pose: list[list[float]]) -> list[float]:
+    """A 4x4 pose as the 16 values the proto's ``pose`` fields hold."""
+    return [v for row in pose for v in row]
 
 
 class HealthServicer(health_pb2_grpc.HealthServicer):

@@ -118,20 +118,28 @@ def is_right(error: PoseError) -> bool:
     return error.rre_deg < RIGHT_RRE_DEG and error.rte_m < RIGHT_RTE_M
 
 
+def reliability_bins(
+    probabilities: np.ndarray, right: np.ndarray, bins: int = 10
+) -> list[tuple[float, float, int]]:
+    """``(mean confidence, share right, count)`` of each non-empty equal-width confidence
+    bin: the points of a reliability diagram."""
+    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=float)
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    return [
+        (float(p[which == b].mean()), float(y[which == b].mean()), int((which == b).sum()))
+        for b in range(bins)
+        if np.any(which == b)
+    ]
+
+
 def expected_calibration_error(
     probabilities: np.ndarray, right: np.ndarray, bins: int = 10
 ) -> float:
     """The mean gap between confidence and accuracy over equal-width confidence bins,
     weighted by the bins' shares of the answers."""
-    p, y = np.asarray(probabilities, dtype=float), np.asarray(right, dtype=float)
-    which = np.minimum((p * bins).astype(int), bins - 1)
-    return float(
-        sum(
-            abs(p[which == b].mean() - y[which == b].mean()) * np.mean(which == b)
-            for b in range(bins)
-            if np.any(which == b)
-        )
-    )
+    points = reliability_bins(probabilities, right, bins)
+    total = sum(count for _, _, count in points)
+    return float(sum(abs(c - a) * count for c, a, count in points) / total)
 
 
 def auroc(probabilities: np.ndarray, right: np.ndarray) -> float | None:

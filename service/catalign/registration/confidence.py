@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,22 @@ CALIBRATOR_FILE = "calibrator.json"
 FORMAT_VERSION = 2
 # Margins are capped: an answer ten times behind another is as wrong as one twice behind.
 MAX_MARGIN = 2.0
+# A span over the model's extent past this is stray points, not more of the chair.
+MAX_SPAN = 1.5
+SIGNALS = (
+    "score",
+    "explained",
+    "covered",
+    "heading_margin",
+    "model_margin",
+    "fitness",
+    "rmse",
+    "inlier_ratio",
+    "span",
+    "up_given",
+    "up_belief",
+    "log_keypoints",
+)
 
 
 @dataclass(frozen=True)
@@ -56,30 +72,27 @@ class Evidence:
     up_belief: float
     keypoints: int
 
+    def row(self) -> list[float]:
+        """The regression's inputs in :data:`SIGNALS` order: margins capped, the key points
+        on a log scale."""
+        return [
+            self.score,
+            self.explained,
+            self.covered,
+            min(self.heading_margin, MAX_MARGIN),
+            min(self.model_margin, MAX_MARGIN),
+            self.fitness,
+            self.rmse,
+            self.inlier_ratio,
+            min(self.span, MAX_SPAN),
+            float(self.up_given),
+            self.up_belief,
+            math.log(max(self.keypoints, 1)),
+        ]
+
     def signals(self) -> dict[str, float]:
-        """The regression's inputs, by name: margins capped, the key points on a log scale."""
-        return {
-            "score": self.score,
-            "explained": self.explained,
-            "covered": self.covered,
-            "heading_margin": min(self.heading_margin, MAX_MARGIN),
-            "model_margin": min(self.model_margin, MAX_MARGIN),
-            "fitness": self.fitness,
-            "rmse": self.rmse,
-            "inlier_ratio": self.inlier_ratio,
-            "span": min(self.span, 1.5),
-            "up_given": float(self.up_given),
-            "up_belief": self.up_belief,
-            "log_keypoints": math.log(max(self.keypoints, 1)),
-        }
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-SIGNALS = tuple(
-    Evidence(0, 0, 0, 0, 0, 0, 0, 0, 0, False, 0, 1).signals()  # the names, in order
-)
+        """The regression's inputs, by name."""
+        return dict(zip(SIGNALS, self.row(), strict=True))
 
 
 @dataclass(frozen=True)
@@ -96,8 +109,7 @@ class Calibrator:
 
     def probability(self, evidence: Evidence) -> float:
         """The probability that the answer ``evidence`` describes is right."""
-        signals = evidence.signals()
-        return float(self.probabilities(np.array([[signals[name] for name in SIGNALS]]))[0])
+        return float(self.probabilities(np.array([evidence.row()]))[0])
 
     def probabilities(self, rows: np.ndarray) -> np.ndarray:
         """The probability of each row of :data:`SIGNALS` values."""

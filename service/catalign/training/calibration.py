@@ -79,8 +79,7 @@ class Samples:
     chairs: list[str] = field(default_factory=list)
 
     def add(self, evidence: Evidence, right: bool, kind: str, chair: str) -> None:
-        signals = evidence.signals()
-        self.rows.append([signals[name] for name in SIGNALS])
+        self.rows.append(evidence.row())
         self.right.append(right)
         self.kinds.append(kind)
         self.chairs.append(chair)
