@@ -17,6 +17,8 @@ DEFAULTS = {
     "top_k": 10,
     "ransac_factor": 2.0,
     "icp_factor": 1.0,
+    "icp_iterations": 30,
+    "icp_points": 600,
     "up_tolerance_deg": 30.0,
     "min_points": 50,
     "up_proposals": 3,

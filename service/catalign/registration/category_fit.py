@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import KW_ONLY, dataclass, replace
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from catalign.geometry.se3 import make_pose
@@ -61,24 +60,23 @@ class CategoryFitter:
     def fit(
         self,
         hypothesis: Hypothesis,
-        query: o3d.geometry.PointCloud,
         keypoints: np.ndarray,
         turn: np.ndarray,
         *,
         floor_level: float | None = None,
     ) -> Hypothesis:
-        """The three steps (module docstring) for the winner ``hypothesis`` of the query
-        (``query``, its ``keypoints``), whose levelling turn is ``turn``. ``floor_level`` is
+        """The three steps (module docstring) for the winner ``hypothesis`` of the query's
+        ``keypoints``, whose levelling turn is ``turn``. ``floor_level`` is
         the height (along ``turn``'s up) of a floor found under the query and set aside: the
         chair stands on it, so its observed extent reaches down to it."""
         heights = keypoints @ turn[1]
         bottom = heights.min() if floor_level is None else min(heights.min(), floor_level)
-        hypothesis = self.fit_at_observed_size(hypothesis, query, float(heights.max() - bottom))
+        hypothesis = self.fit_at_observed_size(hypothesis, keypoints, float(heights.max() - bottom))
         hypothesis = self.stand_upright(hypothesis, turn)
         return self.centre_on_extent(hypothesis, keypoints, floor_level)
 
     def fit_at_observed_size(
-        self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud, observed_height: float
+        self, hypothesis: Hypothesis, keypoints: np.ndarray, observed_height: float
     ) -> Hypothesis:
         """ICP once more against the model scaled about its centre to the observed height,
         keeping the rigid pose that puts the (unscaled) centre where the scaled fit put it."""
@@ -90,7 +88,7 @@ class CategoryFitter:
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
         # x = R (s p + (1 - s) c) + t = R y + t_s for y = s p on the origin-scaled surface
         start = make_pose(rotation, translation + (1 - scale) * rotation @ centre)
-        fitted = self.refiner.icp(query, hypothesis.model_id, scale, start)
+        fitted = self.refiner.icp(keypoints, hypothesis.model_id, scale, start)
         fitted[:3, 3] -= (1 - scale) * fitted[:3, :3] @ centre
         return replace(hypothesis, transform=fitted)
 

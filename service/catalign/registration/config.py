@@ -51,6 +51,12 @@ class EngineConfig(BaseModel):
     distance grids (``catalign.geometry.distance_grid.TRUNCATION_VOXELS``) stop."""
     icp_factor: float = Field(default=1.0, gt=0)
     """ICP inlier distance, in voxels."""
+    icp_iterations: int = Field(default=30, ge=1)
+    """Gauss-Newton steps of each ICP pass, at most (a pose on the wrong model, or on another
+    instance, can slide for many steps without converging)."""
+    icp_points: int | None = Field(default=600, ge=3)
+    """Query key points ICP aligns, a fixed subset (None: all); 600 measured as accurate as all
+    of them and a quarter faster (``bench/results/tradeoff-icp.md``)."""
     up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
     """How far the chair's up may tilt from the given ``up`` in the three-point search."""
     min_points: int = Field(default=MIN_VOXELS, ge=1)

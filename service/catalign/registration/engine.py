@@ -45,7 +45,6 @@ from functools import cached_property
 from typing import TypeVar
 
 import numpy as np
-import open3d as o3d
 
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
@@ -54,7 +53,6 @@ from catalign.geometry.distance_grid import CELL_VOXELS
 from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
-from catalign.registration.alignment import point_cloud
 from catalign.registration.answers import best_other, distinct
 from catalign.registration.base import Alternative, Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
@@ -65,7 +63,7 @@ from catalign.registration.describe import QueryView, describe, rotations_of, tu
 from catalign.registration.hypothesise import Hypothesiser
 from catalign.registration.match import Matcher, probe_rows
 from catalign.registration.orient import orient
-from catalign.registration.refine import Refiner
+from catalign.registration.refine import Fit, Refiner
 from catalign.registration.shortlist import shortlist
 from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
@@ -112,7 +110,7 @@ class Engine:
         self.verifier = from_config(
             Verifier, config, library, distance=self.ransac_distance, cell=CELL_VOXELS * voxel
         )
-        self.refiner = Refiner(library, distance=self.icp_distance, normal_radius=2 * voxel)
+        self.refiner = from_config(Refiner, config, library, distance=self.icp_distance)
         self.category_fitter = CategoryFitter(
             library, self.refiner, support_radius=2 * voxel, extent_points=config.coverage_points
         )
@@ -274,7 +272,7 @@ class Engine:
 
     def _refined(self, search: _Search, item: Scored) -> Scored:
         """``item``'s pose refined by ICP onto its model and scored again."""
-        pose = self.refiner.refine(item.hypothesis, search.query)
+        pose = self.refiner.refine(item.hypothesis, search.keypoints)
         return self._weighed(search, self.verifier.score(pose, search.checks))
 
     def _finish(
@@ -289,13 +287,11 @@ class Engine:
         the observed chair's frame (the category fit); then its statistics, and the evidence
         (against every pose ``tried``) and confidence of it."""
         pose = item.hypothesis
-        fit = self.refiner.fit(pose, search.query)
+        fit = self.refiner.fit(pose, search.keypoints)
         turn = search.turn
         if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
-            pose = self.category_fitter.fit(
-                pose, search.query, search.keypoints, turn, floor_level=floor_level
-            )
-            fit = self.refiner.fit(pose, search.query)
+            pose = self.category_fitter.fit(pose, search.keypoints, turn, floor_level=floor_level)
+            fit = self.refiner.fit(pose, search.keypoints)
         explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
         score = max(item.score, 1e-9)
         evidence = Evidence(
@@ -306,7 +302,7 @@ class Engine:
             model_margin=best_other(tried, item, same_model=False) / score,
             fitness=float(fit.fitness),
             rmse=float(fit.inlier_rmse) / self.icp_distance,
-            inlier_ratio=len(fit.correspondence_set) / len(search.keypoints),
+            inlier_ratio=fit.num_inliers / len(search.keypoints),
             span=_spanned(self.library[pose.model_id], pose.transform, search.keypoints),
             up_given=search.orientation.given,
             up_belief=search.orientation.belief,
@@ -325,11 +321,11 @@ class Engine:
         timings: dict[str, float],
     ) -> RegistrationResult:
         """The result for the first of the ``finished`` answers (the others are its
-        alternatives): Open3D's fit statistics on the query's key points, the candidates'
+        alternatives): the fit statistics on the query's key points, the candidates'
         best scores among the poses ``tried``, and the matches of the pose."""
         best, others = finished[0], finished[1:]
         winner, fit, search = best.item.hypothesis, best.fit, best.search
-        num_inliers = len(fit.correspondence_set)
+        num_inliers = fit.num_inliers
         return RegistrationResult(
             model_id=winner.model_id,
             pose=winner.transform,
@@ -369,7 +365,7 @@ class _Finished:
 
     search: _Search
     item: Scored
-    fit: o3d.pipelines.registration.RegistrationResult
+    fit: Fit
     evidence: Evidence
     confidence: float | None
 
@@ -404,10 +400,6 @@ class _Search:
     @cached_property
     def turn(self) -> np.ndarray | None:
         return turn_of(self.orientation)
-
-    @cached_property
-    def query(self) -> o3d.geometry.PointCloud:
-        return point_cloud(self.keypoints)
 
 
 def _searches(

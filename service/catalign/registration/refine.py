@@ -3,10 +3,14 @@
 A hypothesis from two or three matches can be a few degrees off, which moves a chair's far side
 further than one ICP distance; so ICP runs twice, within 3 and then 1 times ``distance``
 (:data:`ICP_SCHEDULE`), from the hypothesis. The query is aligned *onto* the model (query ->
-model, as in :mod:`~catalign.registration.alignment`) so that Open3D's fitness is the share of
-the query the posed model explains; poses are reported model -> observation. A similarity pose
-(``estimate_scale``) is refined rigidly against the model scaled by its scale. Each model's
-surface, with normals, is built once and cached.
+model, as in :mod:`~catalign.registration.alignment`) so that the fitness is the share of the
+query the posed model explains; poses are reported model -> observation.
+
+ICP is small_gicp's point-to-plane ICP: each model's surface, its normals and its KD-tree are
+built once and cached, where Open3D's ICP builds the target's KD-tree on every call
+(``bench/results/tradeoff-icp.md`` compares the two on the evaluation's cases). A surface scaled
+by ``s`` (a similarity pose, or the category fit's refit at the observed size) is never built:
+the query is scaled by ``1/s`` instead, which is the same alignment.
 """
 
 from __future__ import annotations
@@ -14,77 +18,116 @@ from __future__ import annotations
 from dataclasses import KW_ONLY, dataclass, field, replace
 
 import numpy as np
-import open3d as o3d
+import small_gicp
 
 from catalign.geometry.se3 import invert, split_scale
 from catalign.library.index import Library
-from catalign.registration.alignment import point_cloud
 from catalign.registration.hypothesise import Hypothesis
 
-reg = o3d.pipelines.registration
 # ICP distances, in multiples of the ICP distance: coarse first, then fine.
 ICP_SCHEDULE = (3.0, 1.0)
+# small_gicp's threads: it brings its own OpenMP runtime, whose workers and torch's spin against
+# each other on a worker's cores (one thread measured 25 % faster than two on two cores).
+THREADS = 1
+# Neighbours a surface normal is fitted to.
+NORMAL_NEIGHBOURS = 20
+
+
+@dataclass(frozen=True)
+class Fit:
+    """How well the posed model explains the query: the share of query points within the ICP
+    distance of its surface (``fitness``), their RMS distance, and how many they are."""
+
+    fitness: float
+    inlier_rmse: float
+    num_inliers: int
+
+
+@dataclass(frozen=True, eq=False)
+class _Surface:
+    """A model's surface points with normals, and their KD-tree."""
+
+    cloud: small_gicp.PointCloud
+    tree: small_gicp.KdTree
 
 
 @dataclass(eq=False)
 class Refiner:
-    """ICP against ``library`` models' surfaces, each built once (with normals) and cached.
+    """ICP against ``library`` models' surfaces, each built once (normals, KD-tree) and cached.
 
-    ``distance`` is the ICP inlier distance (metres, the fine one); ``normal_radius`` the radius
-    the models' surface normals are estimated within.
+    ``distance`` is the ICP inlier distance (metres, the fine one); ``icp_iterations`` the
+    most Gauss-Newton steps of each pass; ``icp_points`` the query points ICP aligns (a
+    fixed subset; None: all).
     """
 
     library: Library
     _: KW_ONLY
     distance: float
-    normal_radius: float
-    _surfaces: dict[str, o3d.geometry.PointCloud] = field(
-        default_factory=dict, init=False, repr=False
-    )
+    icp_iterations: int
+    icp_points: int | None
+    _surfaces: dict[str, _Surface] = field(default_factory=dict, init=False, repr=False)
 
-    def refine(self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud) -> Hypothesis:
-        """The hypothesis with its pose refined by ICP (its scale, if any, kept). The refined
-        pose is kept even when it scores a little lower: a soft score rewards a slightly wrong
-        pose about as much as the right one, ICP does not."""
+    def refine(self, hypothesis: Hypothesis, query: np.ndarray) -> Hypothesis:
+        """The hypothesis with its pose refined by ICP onto the query points (its scale, if
+        any, kept). The refined pose is kept even when it scores a little lower: a soft score
+        rewards a slightly wrong pose about as much as the right one, ICP does not."""
         rigid, scale = split_scale(hypothesis.transform)
         pose = self.icp(query, hypothesis.model_id, scale, rigid)
         pose[:3, :3] *= scale
         return replace(hypothesis, transform=pose)
 
-    def icp(
-        self, query: o3d.geometry.PointCloud, model_id: str, scale: float, start: np.ndarray
-    ) -> np.ndarray:
+    def icp(self, query: np.ndarray, model_id: str, scale: float, start: np.ndarray) -> np.ndarray:
         """Point-to-plane ICP of the query onto the model surface (scaled by ``scale`` about
         the origin) from the rigid model -> observation pose ``start``; the refined rigid pose.
         """
-        surface = self.surface(model_id, scale)
-        current = invert(start)
+        surface = self.surface(model_id)
+        # q = R (s p) + t  <=>  q / s = R p + t / s: align the shrunk query to the surface.
+        source = small_gicp.PointCloud(self._subset(np.asarray(query, np.float64)) / scale)
+        current = invert(_translation_scaled(start, 1.0 / scale))
         for factor in ICP_SCHEDULE:
-            current = reg.registration_icp(
-                query,
-                surface,
-                factor * self.distance,
+            current = small_gicp.align(
+                surface.cloud,
+                source,
+                surface.tree,
                 current,
-                reg.TransformationEstimationPointToPlane(),
-            ).transformation
-        return invert(np.asarray(current))
+                registration_type="PLANE_ICP",
+                max_correspondence_distance=factor * self.distance / scale,
+                num_threads=THREADS,
+                max_iterations=self.icp_iterations,
+            ).T_target_source
+        return _translation_scaled(invert(np.asarray(current)), scale)
 
-    def fit(self, hypothesis: Hypothesis, query: o3d.geometry.PointCloud) -> reg.RegistrationResult:
-        """Open3D's fitness and inlier RMSE of the query on the model under the pose."""
+    def _subset(self, query: np.ndarray) -> np.ndarray:
+        """At most ``icp_points`` of the query points, the same for every call."""
+        if self.icp_points is None or len(query) <= self.icp_points:
+            return query
+        rows = np.random.default_rng(0).choice(len(query), self.icp_points, replace=False)
+        return query[np.sort(rows)]
+
+    def fit(self, hypothesis: Hypothesis, query: np.ndarray) -> Fit:
+        """The fit of the query points on the model under the hypothesis's pose."""
         rigid, scale = split_scale(hypothesis.transform)
-        return reg.evaluate_registration(
-            query, self.surface(hypothesis.model_id, scale), self.distance, invert(rigid)
+        local = (np.asarray(query, np.float64) - rigid[:3, 3]) @ rigid[:3, :3] / scale
+        _, squared = self.surface(hypothesis.model_id).tree.batch_nearest_neighbor_search(
+            local, num_threads=THREADS
         )
+        distances = np.sqrt(np.asarray(squared)) * scale
+        inliers = distances[distances < self.distance]
+        rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else 0.0
+        return Fit(len(inliers) / max(len(distances), 1), rmse, len(inliers))
 
-    def surface(self, model_id: str, scale: float = 1.0) -> o3d.geometry.PointCloud:
-        """The model's surface points with normals (cached), scaled about the origin when
-        ``scale`` is not 1."""
+    def surface(self, model_id: str) -> _Surface:
+        """The model's surface points with normals and KD-tree (cached)."""
         if model_id not in self._surfaces:
-            points = self.library[model_id].points.astype(np.float64)
-            self._surfaces[model_id] = point_cloud(points, normal_radius=self.normal_radius)
-        surface = self._surfaces[model_id]
-        if abs(scale - 1.0) < 1e-9:
-            return surface
-        scaled = o3d.geometry.PointCloud(surface)
-        scaled.scale(scale, center=np.zeros(3))
-        return scaled
+            cloud = small_gicp.PointCloud(self.library[model_id].points.astype(np.float64))
+            tree = small_gicp.KdTree(cloud, THREADS)
+            small_gicp.estimate_normals(cloud, tree, NORMAL_NEIGHBOURS, THREADS)
+            self._surfaces[model_id] = _Surface(cloud, tree)
+        return self._surfaces[model_id]
+
+
+def _translation_scaled(pose: np.ndarray, factor: float) -> np.ndarray:
+    """``pose`` with its translation multiplied by ``factor``."""
+    scaled = np.array(pose, dtype=np.float64)
+    scaled[:3, 3] *= factor
+    return scaled
