@@ -23,7 +23,7 @@ POSE = make_pose(axis_angle(Z_UP, 0.6) @ TURN.T, np.array([0.3, -0.2, 0.0]))
 def fitter(box_chair, make_entry, make_library) -> CategoryFitter:
     library = make_library(make_entry("chair", box_chair.points))
     refiner = Refiner(library, distance=0.03, icp_iterations=30, icp_points=None)
-    return CategoryFitter(library, refiner, support_radius=0.06, extent_points=1_500)
+    return CategoryFitter(library, refiner, extent_points=1_500)
 
 
 def _hypothesis(pose: np.ndarray, keypoints: np.ndarray) -> Hypothesis:
@@ -58,7 +58,7 @@ def test_a_larger_chair_gets_the_model_centre_on_its_own(fitter, box_chair) -> N
     hugging = fitter.refiner.refine(_hypothesis(hugging, keypoints), keypoints)
     observed_centre = transform(centre[None], POSE)[0]
     assert _centre_error(fitter, hugging.transform, observed_centre) > 0.015
-    fitted = fitter.fit(hugging, keypoints, TURN)
+    fitted = fitter.fit(hugging, keypoints, TURN, solid=supported(keypoints, 0.06))
     assert _centre_error(fitter, fitted.transform, observed_centre) < 0.01
     assert rotation_error_deg(fitted.transform[:3, :3], POSE[:3, :3]) < 2.0
     assert np.linalg.det(fitted.transform[:3, :3]) == pytest.approx(1.0)

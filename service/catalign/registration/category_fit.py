@@ -45,16 +45,13 @@ SIZE_RANGE = (0.8, 1.25)
 class CategoryFitter:
     """Fits another instance's rigid pose to the observed chair's frame.
 
-    ``refiner`` runs the ICP against ``library`` models; ``support_radius`` is how near
-    (metres) a key point's two neighbours must be for it to count in the observed extent;
-    ``extent_points`` how many model surface points give the model's extent (the coverage
-    check's sample).
+    ``refiner`` runs the ICP against ``library`` models; ``extent_points`` is how many model
+    surface points give the model's extent (the coverage check's sample).
     """
 
     library: Library
     refiner: Refiner
     _: KW_ONLY
-    support_radius: float
     extent_points: int
 
     def fit(
@@ -63,17 +60,19 @@ class CategoryFitter:
         keypoints: np.ndarray,
         turn: np.ndarray,
         *,
+        solid: np.ndarray,
         floor_level: float | None = None,
     ) -> Hypothesis:
         """The three steps (module docstring) for the winner ``hypothesis`` of the query's
-        ``keypoints``, whose levelling turn is ``turn``. ``floor_level`` is
-        the height (along ``turn``'s up) of a floor found under the query and set aside: the
-        chair stands on it, so its observed extent reaches down to it."""
+        ``keypoints``, whose levelling turn is ``turn``; ``solid`` are the key points with
+        neighbours (:func:`supported`, once per query), which give the observed extent.
+        ``floor_level`` is the height (along ``turn``'s up) of a floor found under the query
+        and set aside: the chair stands on it, so its observed extent reaches down to it."""
         heights = keypoints @ turn[1]
         bottom = heights.min() if floor_level is None else min(heights.min(), floor_level)
         hypothesis = self.fit_at_observed_size(hypothesis, keypoints, float(heights.max() - bottom))
         hypothesis = self.stand_upright(hypothesis, turn)
-        return self.centre_on_extent(hypothesis, keypoints, floor_level)
+        return self.centre_on_extent(hypothesis, solid, floor_level)
 
     def fit_at_observed_size(
         self, hypothesis: Hypothesis, keypoints: np.ndarray, observed_height: float
@@ -98,15 +97,16 @@ class CategoryFitter:
         return replace(hypothesis, transform=level_pose(hypothesis.transform, turn, centre))
 
     def centre_on_extent(
-        self, hypothesis: Hypothesis, keypoints: np.ndarray, floor_level: float | None = None
+        self, hypothesis: Hypothesis, solid: np.ndarray, floor_level: float | None = None
     ) -> Hypothesis:
         """The (upright) pose shifted along each of the model's axes on which the observation
-        spans nearly all of the model, so that the two spans share their middle there; the
-        observed span along the model's up reaches down to ``floor_level`` when given."""
+        (its ``solid`` key points) spans nearly all of the model, so that the two spans share
+        their middle there; the observed span along the model's up reaches down to
+        ``floor_level`` when given."""
         points = self.library[hypothesis.model_id].points
         sample = surface_sample(points, self.extent_points)
         rotation, translation = hypothesis.transform[:3, :3], hypothesis.transform[:3, 3]
-        observed = (supported(keypoints, self.support_radius) - translation) @ rotation
+        observed = (solid - translation) @ rotation
         low, high = observed.min(axis=0), observed.max(axis=0)
         if floor_level is not None:  # upright: the model's +Y is the floor's normal
             low[1] = min(low[1], floor_level - translation @ rotation[:, 1])

@@ -55,7 +55,7 @@ from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
 from catalign.registration.answers import best_other, distinct
 from catalign.registration.base import Alternative, Orientation, RegistrationResult
-from catalign.registration.category_fit import CategoryFitter
+from catalign.registration.category_fit import CategoryFitter, supported
 from catalign.registration.cleanup import detached_mask
 from catalign.registration.confidence import Evidence
 from catalign.registration.config import EngineConfig, from_config
@@ -112,7 +112,7 @@ class Engine:
         )
         self.refiner = from_config(Refiner, config, library, distance=self.icp_distance)
         self.category_fitter = CategoryFitter(
-            library, self.refiner, support_radius=2 * voxel, extent_points=config.coverage_points
+            library, self.refiner, extent_points=config.coverage_points
         )
 
     def register(
@@ -168,7 +168,9 @@ class Engine:
                 voxels=cloud.voxels,
                 pass_voxels=config.pass_voxels,
             )
-            searches = _searches(oriented.orientations, views, config.probe_points, seed)
+            searches = _searches(
+                oriented.orientations, views, config.probe_points, seed, support_radius=2 * voxel
+            )
 
         # Search under each orientation: shortlist, match, hypothesise and verify.
         k = config.top_k if top_k is None else top_k
@@ -290,7 +292,9 @@ class Engine:
         fit = self.refiner.fit(pose, search.keypoints)
         turn = search.turn
         if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
-            pose = self.category_fitter.fit(pose, search.keypoints, turn, floor_level=floor_level)
+            pose = self.category_fitter.fit(
+                pose, search.keypoints, turn, solid=search.solid, floor_level=floor_level
+            )
             fit = self.refiner.fit(pose, search.keypoints)
         explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
         score = max(item.score, 1e-9)
@@ -385,11 +389,13 @@ def _spanned(model: LibraryEntry, pose: np.ndarray, keypoints: np.ndarray) -> fl
 @dataclass(eq=False)
 class _Search:
     """The query under one orientation: its views (one per heading), the key points and probe
-    rows that verification uses, and, once searched, its shortlist and checks."""
+    rows that verification uses, and, once searched, its shortlist and checks. Its ``solid``
+    key points are those with two neighbours within ``support_radius`` (metres)."""
 
     orientation: Orientation
     views: list[QueryView]
     probes: np.ndarray
+    support_radius: float
     candidates: list[str] = field(default_factory=list)
     checks: QueryChecks | None = None
 
@@ -398,12 +404,22 @@ class _Search:
         return self.views[0].keypoints
 
     @cached_property
+    def solid(self) -> np.ndarray:
+        """The key points that count in the observed extent (stray points would stretch it)."""
+        return supported(self.keypoints, self.support_radius)
+
+    @cached_property
     def turn(self) -> np.ndarray | None:
         return turn_of(self.orientation)
 
 
 def _searches(
-    orientations: list[Orientation], views: list[QueryView], probe_points: int, seed: int
+    orientations: list[Orientation],
+    views: list[QueryView],
+    probe_points: int,
+    seed: int,
+    *,
+    support_radius: float,
 ) -> list[_Search]:
     """``views`` (in the order of the orientations' rotations) split by orientation."""
     searches, first = [], 0
@@ -411,7 +427,7 @@ def _searches(
         mine = views[first : first + len(orientation.headings)]
         first += len(orientation.headings)
         probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
-        searches.append(_Search(orientation, mine, probes))
+        searches.append(_Search(orientation, mine, probes, support_radius))
     return searches
 
 
