@@ -1,7 +1,7 @@
 """End-to-end latency and throughput of the served engine: SDK binary, SDK JSON and gRPC.
 
 Starts the real server as a subprocess (``catalign serve``: shipped weights ``model_store/``,
-default library ``model_store/library``, 2 worker threads, a queue deep enough for every request
+default library ``model_store/library``, 2 workers, a queue deep enough for every request
 in flight, a per-request deadline as long as the client's timeout so that no request is cut off)
 on free 127.0.0.1 ports for HTTP and gRPC, so client and server do not share a GIL. One 20k-point
 partial view of a procedural chair that is in no library is registered with a fixed ``top_k``
@@ -11,13 +11,15 @@ above the 2 workers) through three transports: ``catalign_client.Client.align(en
 Per concurrency level the transports run interleaved, in ``--rounds`` rounds with a rotating
 order, so a change in the machine's load hits all of them alike.
 
-The whole run is repeated, one server at a time in the given order, for each value of
-``--threads-per-worker`` (``CATALIGN_THREADS_PER_WORKER``: the torch, BLAS/OpenMP and Open3D
-threads of each worker). The default ``1 2`` compares the even share of a 2-core machine with 2
-workers (1 thread each, the server's default there) against 2 threads per worker, which
-oversubscribes the cores. With one thread per worker, throughput should rise up to the core
-count and then stay flat; the ratio
-of the sdk-binary req/s of the first value to the second is printed below the table.
+The whole run is repeated, one server at a time in the given order, for each worker mode of
+``--worker-modes`` (``CATALIGN_WORKER_PROCESSES``: ``processes``, each worker a spawned process
+with its own engine, or ``threads`` of the server process sharing one engine and its GIL) and
+each value of ``--threads-per-worker`` (``CATALIGN_THREADS_PER_WORKER``: the torch, BLAS/OpenMP
+and Open3D threads of each worker). The default, ``processes threads`` with 1 thread per worker
+(the even share of a 2-core machine with 2 workers, the server's default there and the best
+measured), compares worker processes with worker threads. With one thread per worker,
+throughput should rise up to the core count and then stay flat; the ratio of the sdk-binary
+req/s of the first server run to the second is printed below the table.
 
 Latency is measured per request from before encoding to the parsed answer. The engine's own time
 is the ``timings_ms['total']`` the server returns (from submission to its worker pool to the
@@ -27,26 +29,30 @@ are reported: the median of (end-to-end - server total) per request, which is th
 cost (encoding, loopback, decoding, the HTTP or gRPC stack) at any concurrency, and end-to-end
 median minus engine median, which at concurrency 1 is the same thing seen from outside and at
 higher concurrency mostly queueing. A few direct ``Engine.register`` calls in this process (with
-the threads of one server worker, for each value) give the engine's time with no server at all.
-For each server run the table's notes give the load average at its start and the share of the
-machine's CPU time that other processes used while it was measured (``/proc/stat`` minus this
-process and the server): the timings mean something only when that share is near 0.
+the threads of one server worker, once per thread count) give the engine's time with no server
+at all. For each server run the table's notes give the load average at its start and the share
+of the machine's CPU time that other processes used while it was measured (``/proc/stat`` minus
+this process, the server and its worker processes): the timings mean something only when that
+share is near 0.
 
-Prints a markdown table and writes it to ``bench/results/serve.md``.
+Prints a markdown table and writes it to ``--out`` (default ``bench/results/serve.md``).
 
 With ``--replicas 1,2`` it measures replicas behind HAProxy instead (``haproxy`` installed;
 see ``docs/deploy-replicas.md``): as many ``catalign serve --read-only`` processes as the largest
-count, each with one worker of one thread, share the default library behind one HAProxy
+count, each with one worker process of one thread, share the default library behind one HAProxy
 (``tests/deploy/_replicas.py``, the set-up the deployment tests use), and the SDK registers the
 same query through HAProxy at concurrency 8. Each count is measured with the replicas beyond it
 put in maintenance on HAProxy's stats socket (idle, so they use no CPU), in ``--rounds`` rounds
-with a rotating order, so every count sees the same machine. The table goes to
-``bench/results/serve-replicas.md``, with the req/s of the largest count over the smallest.
+with a rotating order, so every count sees the same machine. The table goes to ``--out``
+(default ``bench/results/serve-replicas.md``), with the req/s of the largest count over the
+smallest.
 
     .venv/bin/python bench/serve.py [--concurrency 1 2 4 16] [--requests 8 12 16 32]
-        [--threads-per-worker 1 2] [--requests-scale 1.0] [--top-k 5] [--seed 0]
-        [--points 20000] [--workers 2] [--rounds 2] [--engine-runs 3]
+        [--worker-modes processes threads] [--threads-per-worker 1] [--requests-scale 1.0]
+        [--top-k 5] [--seed 0] [--points 20000] [--workers 2] [--rounds 2] [--engine-runs 3]
+        [--out bench/results/serve.md]
     .venv/bin/python bench/serve.py --replicas 1,2 [--concurrency 8] [--requests 48] [--rounds 2]
+        [--out bench/results/serve-replicas.md]
 """
 
 from __future__ import annotations
@@ -88,13 +94,18 @@ TRANSPORTS = ("sdk-binary", "sdk-json", "grpc")
 START_TIMEOUT_S = 300.0
 REQUEST_TIMEOUT_S = 600.0
 KEEPALIVE_S = 2.0  # client-side expiry of idle HTTP connections, under uvicorn's 5 s
+WORKER_MODES = ("processes", "threads")  # CATALIGN_WORKER_PROCESSES true / false
+
+# One server run: worker mode ("processes" or "threads") and numeric threads per worker.
+Run = tuple[str, int]
 
 
 @dataclass(frozen=True)
 class Sample:
-    """One request: which server (threads per worker), which transport, at what concurrency, how
-    long, and the server's own time."""
+    """One request: which server (worker mode, threads per worker), which transport, at what
+    concurrency, how long, and the server's own time."""
 
+    mode: str
     threads: int
     transport: str
     concurrency: int
@@ -120,9 +131,10 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file."""
+    """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file.
+    ``mode``: its workers are ``processes`` (one engine each) or ``threads`` (one engine)."""
 
-    def __init__(self, workers: int, queue: int, threads_per_worker: int) -> None:
+    def __init__(self, workers: int, queue: int, mode: str, threads_per_worker: int) -> None:
         self.port = free_port()
         self.grpc_port = free_port()
         while self.grpc_port == self.port:
@@ -131,10 +143,12 @@ class ServerProcess:
         self.grpc_target = f"127.0.0.1:{self.grpc_port}"
         self.workers = workers
         self.queue = queue
+        self.mode = mode
         self.threads_per_worker = threads_per_worker
         self._log = tempfile.NamedTemporaryFile(prefix="catalign-serve-", suffix=".log")  # noqa: SIM115
         exe = shutil.which("catalign", path=str(Path(sys.executable).parent)) or "catalign"
         env = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
+        env["CATALIGN_WORKER_PROCESSES"] = "true" if mode == "processes" else "false"
         env["CATALIGN_THREADS_PER_WORKER"] = str(threads_per_worker)
         # Every request must finish: a deadline would turn slow (oversubscribed) runs into 503s.
         env["CATALIGN_DEADLINE_S"] = str(REQUEST_TIMEOUT_S)
@@ -295,21 +309,24 @@ def engine_direct(
 
 
 def serve_run(
-    threads: int,
+    run: Run,
     args: argparse.Namespace,
     counts: list[int],
     queue: int,
     points: np.ndarray,
-    walls: dict[tuple[int, str, int], float],
+    walls: dict[tuple[str, int, str, int], float],
 ) -> tuple[list[Sample], float, float]:
-    """Every concurrency level, transports interleaved, on one server with ``threads`` numeric
-    threads per worker: the samples (wall times added to ``walls``), the server's start-up time
-    and the share of the machine's CPU time that other processes used while it was measured."""
-    server = ServerProcess(args.workers, queue, threads)
+    """Every concurrency level, transports interleaved, on one server whose workers are ``mode``
+    with ``threads`` numeric threads each: the samples (wall times added to ``walls``), the
+    server's start-up time and the share of the machine's CPU time that other processes used
+    while it was measured."""
+    mode, threads = run
+    server = ServerProcess(args.workers, queue, mode, threads)
     samples: list[Sample] = []
     try:
         ready_s = server.wait_ready()
-        cpu_before = _cpu_seconds(server.pid)
+        pids = _process_tree(server.pid)  # the server and its worker processes, all started
+        cpu_before = _cpu_seconds(*pids)
         transports = Transports(server, points, args.top_k, args.seed)
         try:
             for name in TRANSPORTS:  # warm-up: connections, lazy imports, first-call paths
@@ -320,17 +337,19 @@ def serve_run(
                     order = TRANSPORTS[r % 3 :] + TRANSPORTS[: r % 3]
                     for name in order:
                         results, wall = run_batch(transports.calls[name], chunk, concurrency)
-                        key = (threads, name, concurrency)
+                        key = (mode, threads, name, concurrency)
                         walls[key] = walls.get(key, 0.0) + wall
-                        samples += [Sample(threads, name, concurrency, *row) for row in results]
+                        samples += [
+                            Sample(mode, threads, name, concurrency, *row) for row in results
+                        ]
                         print(
-                            f"threads/worker={threads} c={concurrency:<3} {name:<10} "
+                            f"{mode} threads/worker={threads} c={concurrency:<3} {name:<10} "
                             f"round {r + 1}: {chunk} requests in {wall:.1f} s",
                             file=sys.stderr,
                         )
         finally:
             transports.close()
-        foreign = _foreign_share(cpu_before, _cpu_seconds(server.pid))
+        foreign = _foreign_share(cpu_before, _cpu_seconds(*pids))
     except Exception:
         print(f"catalign serve log (tail):\n{server.log()}", file=sys.stderr)
         raise
@@ -352,7 +371,7 @@ def replica_counts(text: str) -> list[int]:
 
 def replicas_main(args: argparse.Namespace, counts: list[int], points: np.ndarray) -> None:
     """``--replicas``: sdk-binary req/s through HAProxy for each replica count (see the module
-    docstring), printed and written to ``bench/results/serve-replicas.md``."""
+    docstring), printed and written to ``--out`` (default ``bench/results/serve-replicas.md``)."""
     sys.path.insert(0, str(ROOT))  # the set-up is the deployment tests' own module
     from tests.deploy._replicas import Deployment
 
@@ -372,11 +391,15 @@ def replicas_main(args: argparse.Namespace, counts: list[int], points: np.ndarra
             writer=False,
             workers=1,
             threads_per_worker=1,
-            env={"CATALIGN_DEADLINE_S": str(REQUEST_TIMEOUT_S)},
+            env={
+                "CATALIGN_DEADLINE_S": str(REQUEST_TIMEOUT_S),
+                "CATALIGN_WORKER_PROCESSES": "true",
+            },
         ) as deployment,
     ):
         proxy = deployment.proxy
-        pids = [proxy.process.pid, *(r.process.pid for r in deployment.readers if r.process)]
+        servers = (r.process.pid for r in deployment.readers if r.process)
+        pids = [proxy.process.pid, *(pid for s in servers for pid in _process_tree(s))]
         client = Client(
             deployment.url,
             timeout=REQUEST_TIMEOUT_S,
@@ -426,9 +449,10 @@ def replicas_main(args: argparse.Namespace, counts: list[int], points: np.ndarra
         "",
         f"{platform.machine()} {_cpu_model()}, {os.cpu_count()} CPUs; "
         f"{max(replicas)} `catalign serve --read-only --workers 1` processes "
-        "(`CATALIGN_THREADS_PER_WORKER=1`) sharing the default library "
-        f"({len(_library_ids())} models) behind HAProxy (`tests/deploy/_replicas.py`: leastconn, "
-        "2 requests per replica at once, the rest queued in HAProxy); a count of n serves with "
+        "(`CATALIGN_WORKER_PROCESSES=true`, `CATALIGN_THREADS_PER_WORKER=1`: one worker process "
+        f"of one thread each) sharing the default library ({len(_library_ids())} models) "
+        "behind HAProxy (`tests/deploy/_replicas.py`: leastconn, 2 requests per replica at "
+        "once, the rest queued in HAProxy); a count of n serves with "
         "the first n, the others in maintenance; the SDK (`Client.align`, binary) through "
         f"HAProxy, query {len(points)} points, top_k={args.top_k}, seed={args.seed}, up=+Z; "
         f"{args.rounds} interleaved rounds; load average {load_before:.2f} before, "
@@ -458,7 +482,7 @@ def replicas_main(args: argparse.Namespace, counts: list[int], points: np.ndarra
             f"c={c}: **{rates[high, c] / rates[low, c]:.2f}x**" for c in args.concurrency
         )
         lines += ["", f"req/s with {high} replicas over {low}: {ratios}."]
-    publish("\n".join(lines) + "\n", REPLICA_RESULTS)
+    publish("\n".join(lines) + "\n", args.out or REPLICA_RESULTS)
 
 
 def main() -> None:
@@ -479,12 +503,20 @@ def main() -> None:
         help="Replica counts to compare behind HAProxy, e.g. 1,2 (single-worker replicas).",
     )
     parser.add_argument(
+        "--worker-modes",
+        nargs="+",
+        choices=WORKER_MODES,
+        default=list(WORKER_MODES),
+        help="CATALIGN_WORKER_PROCESSES of the server runs (processes: true, threads: false).",
+    )
+    parser.add_argument(
         "--threads-per-worker",
         type=int,
         nargs="+",
-        default=[1, 2],
-        help="CATALIGN_THREADS_PER_WORKER of each server run, one server after another; the "
-        "sdk-binary req/s of the first is compared with the second.",
+        default=[1],
+        help="CATALIGN_THREADS_PER_WORKER of the server runs. A server runs for every worker "
+        "mode and thread count (modes outer), one after another; the sdk-binary req/s of the "
+        "first run is compared with the second.",
     )
     parser.add_argument("--requests-scale", type=float, default=1.0)
     parser.add_argument("--top-k", type=int, default=5)
@@ -495,6 +527,12 @@ def main() -> None:
     parser.add_argument(
         "--engine-runs", type=int, default=3, help="Direct engine runs per thread count (0: none)."
     )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        help=f"Where the table goes (default {RESULTS.relative_to(ROOT)}, or "
+        f"{REPLICA_RESULTS.relative_to(ROOT)} with --replicas).",
+    )
     args = parser.parse_args()
     if args.concurrency is None:
         args.concurrency = [8] if args.replicas else [1, 2, 4, 16]
@@ -502,12 +540,15 @@ def main() -> None:
         args.requests = [48] * len(args.concurrency) if args.replicas else [8, 12, 16, 32]
     if len(args.requests) != len(args.concurrency):
         parser.error("--requests needs one count per --concurrency level")
+    if len(set(args.worker_modes)) != len(args.worker_modes):
+        parser.error("--worker-modes values must differ")
     if len(set(args.threads_per_worker)) != len(args.threads_per_worker):
         parser.error("--threads-per-worker values must differ")
     if min(args.threads_per_worker) < 1:
         parser.error("--threads-per-worker values must be at least 1")
     counts = [max(args.rounds, round(n * args.requests_scale)) for n in args.requests]
     thread_counts: list[int] = args.threads_per_worker
+    runs: list[Run] = [(m, t) for m in args.worker_modes for t in thread_counts]
 
     points = query_cloud(count=args.points)
     if args.replicas:
@@ -525,31 +566,35 @@ def main() -> None:
     direct = engine_direct(points, args.top_k, args.seed, args.engine_runs, thread_counts)
     queue = max(64, 2 * max(args.concurrency))
     samples: list[Sample] = []
-    walls: dict[tuple[int, str, int], float] = {}
-    ready_s: dict[int, float] = {}
-    load_at_start: dict[int, float] = {}
-    foreign: dict[int, float] = {}
-    for threads in thread_counts:  # one server at a time, in the given order
-        load_at_start[threads] = load_average()
-        run_samples, ready_s[threads], foreign[threads] = serve_run(
-            threads, args, counts, queue, points, walls
-        )
+    walls: dict[tuple[str, int, str, int], float] = {}
+    ready_s: dict[Run, float] = {}
+    load_at_start: dict[Run, float] = {}
+    foreign: dict[Run, float] = {}
+    for run in runs:  # one server at a time, in the given order
+        load_at_start[run] = load_average()
+        run_samples, ready_s[run], foreign[run] = serve_run(run, args, counts, queue, points, walls)
         samples += run_samples
     elapsed = time.perf_counter() - wall_started
 
     engine_ms = {
-        t: float(np.median([s.total_ms for s in samples if s.threads == t and s.concurrency == 1]))
+        run: float(
+            np.median(
+                [s.total_ms for s in samples if (s.mode, s.threads) == run and s.concurrency == 1]
+            )
+        )
         if 1 in args.concurrency
         else float("nan")
-        for t in thread_counts
+        for run in runs
     }
     lines = [
         "# Served latency and throughput (20k-point query, loopback)",
         "",
         f"{platform.machine()} {_cpu_model()}, {os.cpu_count()} CPUs; server: `catalign serve`, "
-        f"{args.workers} workers x {' or '.join(map(str, thread_counts))} threads "
+        f"{args.workers} workers as {' or '.join(args.worker_modes)} "
+        "(`CATALIGN_WORKER_PROCESSES`: a spawned process with its own engine each, or threads "
+        f"sharing one engine) x {' or '.join(map(str, thread_counts))} threads "
         f"(`CATALIGN_THREADS_PER_WORKER`: torch, BLAS/OpenMP, Open3D), one server after another "
-        f"in that order, queue {queue}, deadline {REQUEST_TIMEOUT_S:.0f} s, "
+        f"in the order below, queue {queue}, deadline {REQUEST_TIMEOUT_S:.0f} s, "
         f"{len(_library_ids())} library models; query {len(points)} points (binary "
         f"{binary_bytes / 1024:.0f} KiB, JSON {json_bytes / 1024:.0f} KiB; client-side encoding "
         f"alone: binary {encode_ms['binary']:.1f} ms, JSON {encode_ms['JSON']:.0f} ms), "
@@ -558,43 +603,44 @@ def main() -> None:
         f"{load_average():.2f} after; {elapsed / 60:.1f} min in all.",
         "",
     ]
-    for t in thread_counts:
+    for run in runs:
         lines.append(
-            f"- {t} thread(s)/worker: engine median (server `timings_ms.total`, concurrency 1, "
-            f"all transports) **{engine_ms[t]:.0f} ms**"
-            + (
-                f"; direct `Engine.register` in-process, no server: median "
-                f"{np.median(direct[t]):.0f} ms over {len(direct[t])} runs"
-                if direct.get(t)
-                else ""
+            f"- {_label(run)}: engine median (server `timings_ms.total`, concurrency 1, "
+            f"all transports) **{engine_ms[run]:.0f} ms**; server ready in {ready_s[run]:.0f} s; "
+            f"load average {load_at_start[run]:.2f} at its start; other processes used "
+            f"{foreign[run]:.0%} of the machine's CPU time during its run."
+        )
+    if direct:
+        lines.append(
+            "- direct `Engine.register` in-process, no server: "
+            + "; ".join(
+                f"{t} thread(s) median {np.median(direct[t]):.0f} ms over {len(direct[t])} runs"
+                for t in thread_counts
             )
-            + f"; server ready in {ready_s[t]:.0f} s; load average {load_at_start[t]:.2f} at its "
-            f"start; other processes used {foreign[t]:.0%} of the machine's CPU time during its "
-            "run."
+            + "."
         )
     lines += [
         "",
-        "| threads/worker | transport | concurrency | requests | median ms | p95 ms | req/s | "
-        "server total median ms | overhead/request median ms | median - engine ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| workers | threads/worker | transport | concurrency | requests | median ms | p95 ms | "
+        "req/s | server total median ms | overhead/request median ms | median - engine ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    rates: dict[tuple[int, str, int], float] = {}
-    for t in thread_counts:
+    rates: dict[tuple[str, int, str, int], float] = {}
+    for mode, t in runs:
         for concurrency in args.concurrency:
             for name in TRANSPORTS:
+                key = (mode, t, name, concurrency)
                 cell = [
-                    s
-                    for s in samples
-                    if s.threads == t and s.transport == name and s.concurrency == concurrency
+                    s for s in samples if (s.mode, s.threads, s.transport, s.concurrency) == key
                 ]
                 e2e = np.array([s.e2e_ms for s in cell])
                 total = np.array([s.total_ms for s in cell])
-                rates[t, name, concurrency] = len(cell) / walls[t, name, concurrency]
+                rates[key] = len(cell) / walls[key]
                 lines.append(
-                    f"| {t} | {name} | {concurrency} | {len(cell)} | {np.median(e2e):.0f} | "
-                    f"{np.percentile(e2e, 95):.0f} | "
-                    f"{rates[t, name, concurrency]:.2f} | {np.median(total):.0f} | "
-                    f"{np.median(e2e - total):.1f} | {np.median(e2e) - engine_ms[t]:+.0f} |"
+                    f"| {mode} | {t} | {name} | {concurrency} | {len(cell)} | "
+                    f"{np.median(e2e):.0f} | {np.percentile(e2e, 95):.0f} | {rates[key]:.2f} | "
+                    f"{np.median(total):.0f} | {np.median(e2e - total):.1f} | "
+                    f"{np.median(e2e) - engine_ms[mode, t]:+.0f} |"
                 )
     lines += [
         "",
@@ -604,18 +650,38 @@ def main() -> None:
         "(includes queueing at concurrency > 1). Target: binary adds at most 10 ms to the "
         "engine's own time.",
     ]
-    if len(thread_counts) >= 2:
-        first, second = thread_counts[:2]
+    if len(runs) >= 2:
+        first, second = runs[:2]
+        binary = {run: [rates[(*run, "sdk-binary", c)] for c in args.concurrency] for run in runs}
         ratios = ", ".join(
-            f"c={c}: **{rates[first, 'sdk-binary', c] / rates[second, 'sdk-binary', c]:.2f}x**"
-            for c in args.concurrency
+            f"c={c}: **{a / b:.2f}x**"
+            for c, a, b in zip(args.concurrency, binary[first], binary[second], strict=True)
         )
-        lines += [
-            "",
-            f"sdk-binary req/s, {first} thread(s)/worker over {second} thread(s)/worker: {ratios}.",
-        ]
+        lines += ["", f"sdk-binary req/s, {_label(first)} over {_label(second)}: {ratios}."]
     table = "\n".join(lines) + "\n"
-    publish(table, RESULTS)
+    publish(table, args.out or RESULTS)
+
+
+def _label(run: Run) -> str:
+    """``processes, 1 thread/worker``: a server run as the notes and the ratio name it."""
+    mode, threads = run
+    return f"{mode}, {threads} thread{'s' if threads != 1 else ''}/worker"
+
+
+def _process_tree(pid: int) -> list[int]:
+    """``pid`` and its descendants now (a server's spawned worker processes), from ``/proc``;
+    just ``pid`` where ``/proc`` is missing."""
+    parents: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])  # field 4
+        except (OSError, ValueError, IndexError):
+            continue  # gone meanwhile
+        parents.setdefault(ppid, []).append(int(stat.parent.name))
+    tree = [pid]
+    for parent in tree:  # grows while it is walked: breadth first
+        tree += parents.get(parent, [])
+    return tree
 
 
 def _cpu_seconds(*server_pids: int) -> tuple[float, float, float]:

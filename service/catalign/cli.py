@@ -307,7 +307,11 @@ def serve(
         int | None, typer.Option(help="gRPC port, 0 disables gRPC (default 50051).")
     ] = None,
     workers: Annotated[
-        int | None, typer.Option(help="Registration worker threads (default 2).")
+        int | None,
+        typer.Option(
+            help="Registration workers (default 2), each a process with its own engine "
+            "(CATALIGN_WORKER_PROCESSES=false: threads sharing one)."
+        ),
     ] = None,
     queue: Annotated[
         int | None, typer.Option(help="Requests that may wait for a worker (default 8).")

@@ -32,6 +32,7 @@ from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
+from catalign.api.processes import EngineProcesses, Job, library_stamp, warm_up
 from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
@@ -48,8 +49,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-WARMUP_POINTS = 3000
-
 
 class RegistrationService:
     """Registrations and library changes for one extractor and one library folder."""
@@ -60,6 +59,7 @@ class RegistrationService:
         self.ready = False
         self._engine: Engine | None = None
         self._pool: WorkPool | None = None
+        self._processes: EngineProcesses | None = None
         self._changes = asyncio.Lock()
         self._stamp: tuple[int, int, int] | None = None
         self.spool = Spool(settings.spool_dir, library=settings.library)
@@ -78,12 +78,17 @@ class RegistrationService:
         )
         await asyncio.to_thread(self.spool.open)
         await asyncio.to_thread(self._load)
+        if self.settings.worker_processes:
+            self._processes = await asyncio.to_thread(
+                EngineProcesses, self.settings, workers, threads=threads, niceness=5
+            )
 
     async def warm_up(self) -> None:
-        """One registration on a worker so that the first real request is not the slow one."""
+        """One registration on a worker thread so that the first real request is not the slow
+        one (worker processes warmed up as they started)."""
         try:
-            if self.settings.warmup:
-                await asyncio.wrap_future(self.pool.submit(self._warm_up, self.engine))
+            if self.settings.warmup and self._processes is None:
+                await asyncio.wrap_future(self.pool.submit(warm_up, self.engine))
         except CatalignError as error:
             logger.warning("warm-up registration refused: %s", error)
         self.ready = True
@@ -93,6 +98,8 @@ class RegistrationService:
         self.ready = False
         if self._pool is not None:
             await asyncio.to_thread(self._pool.shutdown)
+        if self._processes is not None:
+            await asyncio.to_thread(self._processes.close)
         await asyncio.to_thread(self.spool.close)
 
     @property
@@ -171,10 +178,10 @@ class RegistrationService:
         A library that no longer loads (rebuilt with other weights, say) is logged and the one
         in memory stays served: a bad edit on disk must not take the service down.
         """
-        if self._stamp == self._manifest_stamp():
+        if self._stamp == library_stamp(self.settings):
             return
         async with self._changes:
-            stamp = self._manifest_stamp()
+            stamp = library_stamp(self.settings)
             if stamp == self._stamp:
                 return
             engine = self.engine
@@ -262,7 +269,7 @@ class RegistrationService:
             engine = self.engine
             check(engine.library)
             library = await self.pool.run(change, engine.extractor, *args)
-            self._stamp = self._manifest_stamp()
+            self._stamp = library_stamp(self.settings)
             self._engine = self._make_engine(engine.extractor, library)
             self.metrics.library_models.set(len(library))
             return library
@@ -275,7 +282,7 @@ class RegistrationService:
 
         started = time.perf_counter()
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
-        self._stamp = self._manifest_stamp()
+        self._stamp = library_stamp(self.settings)
         library = load(self.settings.library, extractor.fingerprint)
         self._engine = self._make_engine(extractor, library)
         self.metrics.library_models.set(len(library))
@@ -291,14 +298,6 @@ class RegistrationService:
         from catalign.library.index import load
 
         return load(self.settings.library, extractor.fingerprint)
-
-    def _manifest_stamp(self) -> tuple[int, int, int] | None:
-        """What tells a rewritten manifest apart (it is replaced by rename, so the inode too)."""
-        try:
-            stat = (self.settings.library / "manifest.json").stat()
-        except OSError:
-            return None
-        return stat.st_mtime_ns, stat.st_size, stat.st_ino
 
     def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
         from catalign.registration.engine import Engine
@@ -320,27 +319,20 @@ class RegistrationService:
                 points = check_cloud(read_points(query.path, max_points=max_points), max_points)
             timings["read"] = (time.perf_counter() - started) * 1e3
         options = query.options
-        result = engine.register(
-            points,
-            top_k=options.top_k,
-            up=None if options.up is None else np.asarray(options.up, dtype=np.float64),
-            estimate_scale=options.estimate_scale,
-            seed=options.seed,
-            deadline=deadline,
-        )
+        engine_options = {
+            "top_k": options.top_k,
+            "up": None if options.up is None else np.asarray(options.up, dtype=np.float64),
+            "estimate_scale": options.estimate_scale,
+            "seed": options.seed,
+        }
+        if self._processes is None:
+            result = engine.register(points, **engine_options, deadline=deadline)
+        else:
+            job = Job(points, engine_options, deadline.remaining, self._stamp)
+            result = self._processes.register(job, deadline)
         timings |= result.timings_ms
         timings["total"] = (time.perf_counter() - submitted) * 1e3
         return dataclasses.replace(result, timings_ms=timings, correspondences=None)
-
-    def _warm_up(self, engine: Engine) -> None:
-        started = time.perf_counter()
-        if len(engine.library) == 0:
-            cube = np.random.default_rng(0).uniform(-0.3, 0.3, size=(WARMUP_POINTS, 3))
-            engine.extractor.describe(cube)
-        else:
-            points = engine.library[engine.library.ids[0]].points.astype(np.float64)
-            engine.register(points[:: max(1, len(points) // WARMUP_POINTS)], top_k=1)
-        logger.info("warm-up took %.1f s", time.perf_counter() - started)
 
     def _add(
         self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str

@@ -32,7 +32,9 @@ SERVICE_LINK = re.compile(r"(tcp|udp|sctp)://[^\s/]+:[0-9]+", re.IGNORECASE)
 class ServiceSettings(BaseSettings):
     """Settings of the HTTP and gRPC service (environment prefix ``CATALIGN_``).
 
-    ``workers`` threads run registrations, each with ``threads_per_worker`` threads for torch,
+    ``workers`` workers run registrations, each in its own process with its own engine
+    (``worker_processes``, the default: threads of one process wait for each other's GIL) or
+    as threads sharing the server's engine, each with ``threads_per_worker`` threads for torch,
     BLAS, OpenMP and Open3D (default: an even share of the cores the process may run on, capped
     by the container's cgroup CPU limit, see :func:`catalign.threads.cores`); ``queue`` more
     requests may wait for one, and any request beyond that is refused at once with 503
@@ -69,7 +71,12 @@ class ServiceSettings(BaseSettings):
     host: str = Field(default="127.0.0.1", min_length=1)
     port: int = Field(default=8000, ge=1, le=65535)
     grpc_port: int = Field(default=50051, ge=0, le=65535, description="0 disables gRPC.")
-    workers: int = Field(default=2, ge=1, le=64, description="Registration threads.")
+    workers: int = Field(default=2, ge=1, le=64, description="Registration workers.")
+    worker_processes: bool = Field(
+        default=True,
+        description="Run each worker's registrations in its own process (one engine each; "
+        "threads share one engine and its GIL).",
+    )
     queue: int = Field(default=8, ge=0, le=10_000, description="Requests that may wait.")
     threads_per_worker: int | None = Field(
         default=None, ge=1, le=256, description="Numeric threads per worker (None: cores/workers)."
