@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import pickle
 import queue
 import time
 from dataclasses import dataclass, replace
@@ -36,7 +37,7 @@ import numpy as np
 
 from catalign.api.errors import BusyError
 from catalign.deadline import Deadline
-from catalign.errors import CatalignError, DeadlineExceededError
+from catalign.errors import CatalignError
 
 if TYPE_CHECKING:
     from catalign.api.settings import ServiceSettings
@@ -236,12 +237,10 @@ def library_stamp(settings: ServiceSettings) -> tuple[int, int, int] | None:
 
 
 def _sendable(error: Exception) -> Exception:
-    """``error``, or one that carries its message when it cannot cross the pipe."""
-    import pickle
-
+    """``error``, or a RuntimeError with its message when it cannot cross the pipe (every
+    CatalignError can: its arguments are its message)."""
     try:
         pickle.loads(pickle.dumps(error))
     except Exception:  # any error that does not survive pickling
-        kind = DeadlineExceededError if isinstance(error, DeadlineExceededError) else RuntimeError
-        return kind(f"{type(error).__name__}: {error}")
+        return RuntimeError(f"{type(error).__name__}: {error}")
     return error
