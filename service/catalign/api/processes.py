@@ -38,6 +38,7 @@ import numpy as np
 from catalign.api.errors import BusyError
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError
+from catalign.library.store import manifest_stamp
 
 if TYPE_CHECKING:
     from catalign.api.settings import ServiceSettings
@@ -183,7 +184,7 @@ def serve(
         limit_malloc_arenas(2)
         limit_threads(threads, threads, niceness)
         extractor = LearnedExtractor(settings.model_dir, threads=threads)
-        stamp = library_stamp(settings)
+        stamp = manifest_stamp(settings.library)
         library = load(settings.library, extractor.fingerprint)
         engine = Engine(extractor, library, config=settings.engine)
         warm_up(engine)
@@ -225,15 +226,6 @@ def warm_up(engine: Engine, points: int = 3000) -> None:
         surface = engine.library[engine.library.ids[0]].points.astype(np.float64)
         engine.register(surface[:: max(1, len(surface) // points)], top_k=1)
     logger.info("warm-up took %.1f s", time.perf_counter() - started)
-
-
-def library_stamp(settings: ServiceSettings) -> tuple[int, int, int] | None:
-    """What tells a rewritten manifest apart (it is replaced by rename, so the inode too)."""
-    try:
-        stat = (settings.library / "manifest.json").stat()
-    except OSError:
-        return None
-    return stat.st_mtime_ns, stat.st_size, stat.st_ino
 
 
 def _sendable(error: Exception) -> Exception:

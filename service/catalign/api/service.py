@@ -32,12 +32,13 @@ from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
-from catalign.api.processes import EngineProcesses, Job, library_stamp, warm_up
+from catalign.api.processes import EngineProcesses, Job, warm_up
 from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError, ShapeReadError
+from catalign.library.store import manifest_stamp
 from catalign.threads import limit_threads
 
 if TYPE_CHECKING:
@@ -178,10 +179,10 @@ class RegistrationService:
         A library that no longer loads (rebuilt with other weights, say) is logged and the one
         in memory stays served: a bad edit on disk must not take the service down.
         """
-        if self._stamp == library_stamp(self.settings):
+        if self._stamp == manifest_stamp(self.settings.library):
             return
         async with self._changes:
-            stamp = library_stamp(self.settings)
+            stamp = manifest_stamp(self.settings.library)
             if stamp == self._stamp:
                 return
             engine = self.engine
@@ -269,7 +270,7 @@ class RegistrationService:
             engine = self.engine
             check(engine.library)
             library = await self.pool.run(change, engine.extractor, *args)
-            self._stamp = library_stamp(self.settings)
+            self._stamp = manifest_stamp(self.settings.library)
             self._engine = self._make_engine(engine.extractor, library)
             self.metrics.library_models.set(len(library))
             return library
@@ -282,7 +283,7 @@ class RegistrationService:
 
         started = time.perf_counter()
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
-        self._stamp = library_stamp(self.settings)
+        self._stamp = manifest_stamp(self.settings.library)
         library = load(self.settings.library, extractor.fingerprint)
         self._engine = self._make_engine(extractor, library)
         self.metrics.library_models.set(len(library))

@@ -185,6 +185,16 @@ def has_manifest(library_dir: Path) -> bool:
     return (library_dir / MANIFEST_NAME).is_file()
 
 
+def manifest_stamp(library_dir: Path) -> tuple[int, int, int] | None:
+    """What tells a rewritten manifest apart (it is replaced by rename, so the inode too); None
+    without one. A server compares stamps to notice a change made by another process."""
+    try:
+        stat = (library_dir / MANIFEST_NAME).stat()
+    except OSError:
+        return None
+    return stat.st_mtime_ns, stat.st_size, stat.st_ino
+
+
 def read_manifest_bytes(library_dir: Path) -> bytes:
     """The manifest's raw bytes; LibraryError if the directory holds no library."""
     path = library_dir / MANIFEST_NAME
