@@ -8,6 +8,7 @@ import pytest
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
 from catalign.registration.gravity import (
+    _distinct,
     level_pose,
     leveller,
     plausible_pairs,
@@ -79,6 +80,22 @@ def test_yaw_ransac_is_deterministic_and_empty_without_plausible_pairs() -> None
     assert len(yaw_ransac(collapsed, collapsed, 0.05, seed=0)) == 0
     with pytest.raises(InvalidInputError, match="inlier_distance"):
         yaw_ransac(src, dst, 0.0, seed=0)
+
+
+def test_distinct_poses_match_a_pairwise_greedy_suppression() -> None:
+    rng = np.random.default_rng(5)
+    yaws = rng.uniform(-np.pi, np.pi, 300)
+    yaws[1::7] = yaws[::7][: len(yaws[1::7])] + 0.1  # near-copies to suppress
+    translations = rng.normal(scale=0.05, size=(300, 3))
+    translations[1::7] = translations[::7][: len(translations[1::7])] + 0.01
+    expected: list[int] = []
+    for i in range(256):  # the suppression window
+        turn = np.abs(np.angle(np.exp(1j * (yaws[expected] - yaws[i]))))
+        shift = np.linalg.norm(translations[expected] - translations[i], axis=1)
+        if not np.any((turn <= np.radians(15.0)) & (shift <= 0.1)):
+            expected.append(i)
+    for keep in (1, 8, 300):
+        assert _distinct(yaws, translations, keep, 15.0, 0.05) == expected[:keep]
 
 
 def test_leveller_turns_up_onto_plus_y() -> None:

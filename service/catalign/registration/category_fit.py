@@ -120,6 +120,6 @@ class CategoryFitter:
 def supported(points: np.ndarray, radius: float, neighbours: int = 2) -> np.ndarray:
     """The points with at least ``neighbours`` others within ``radius`` (all of them when fewer
     than half are)."""
-    counts = np.array([len(n) for n in cKDTree(points).query_ball_point(points, radius)]) - 1
+    counts = cKDTree(points).query_ball_point(points, radius, return_length=True) - 1
     solid = points[counts >= neighbours]
     return solid if len(solid) >= 0.5 * len(points) else points

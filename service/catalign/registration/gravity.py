@@ -172,14 +172,17 @@ def _distinct(
     yaws: np.ndarray, translations: np.ndarray, keep: int, yaw_deg: float, inlier_distance: float
 ) -> list[int]:
     """Greedy suppression: indices (in the given order) of up to ``keep`` distinct poses among
-    the first :data:`_SUPPRESSION_WINDOW`."""
+    the first :data:`_SUPPRESSION_WINDOW`. Each pose kept suppresses the ones close to it in one
+    array operation, so the work grows with ``keep``, not with the window."""
+    window = min(len(yaws), _SUPPRESSION_WINDOW)
+    yaws, translations = yaws[:window], translations[:window]
+    limit, reach = np.radians(yaw_deg), (2 * inlier_distance) ** 2
     chosen: list[int] = []
-    limit = np.radians(yaw_deg)
-    for i in range(min(len(yaws), _SUPPRESSION_WINDOW)):
-        turn = np.abs(np.angle(np.exp(1j * (yaws[chosen] - yaws[i]))))
-        shift = np.linalg.norm(translations[chosen] - translations[i], axis=1)
-        if not np.any((turn <= limit) & (shift <= 2 * inlier_distance)):
-            chosen.append(i)
-            if len(chosen) == keep:
-                break
+    open_ = np.ones(window, dtype=bool)
+    while len(chosen) < keep and open_.any():
+        i = int(np.argmax(open_))
+        chosen.append(i)
+        turn = np.abs((yaws - yaws[i] + np.pi) % (2 * np.pi) - np.pi)
+        shift = ((translations - translations[i]) ** 2).sum(axis=1)
+        open_ &= ~((turn <= limit) & (shift <= reach))
     return chosen
