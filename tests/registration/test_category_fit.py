@@ -64,6 +64,20 @@ def test_a_larger_chair_gets_the_model_centre_on_its_own(fitter, box_chair) -> N
     assert np.linalg.det(fitted.transform[:3, :3]) == pytest.approx(1.0)
 
 
+def test_without_refit_an_answer_is_only_stood_upright_and_centred(fitter, box_chair) -> None:
+    """An alternative skips the refit's ICP: its pose is the levelled, centred one."""
+    centre = fitter.library["chair"].centre
+    keypoints = _observe((box_chair.points - centre) * 1.15 + centre)
+    tilted = make_pose(axis_angle(np.array([1.0, 0, 0]), np.radians(4.0)), np.zeros(3)) @ POSE
+    hypothesis = _hypothesis(tilted, keypoints)
+    solid = supported(keypoints, 0.06)
+    placed = fitter.fit(hypothesis, keypoints, TURN, solid=solid, refit=False)
+    expected = fitter.centre_on_extent(fitter.stand_upright(hypothesis, TURN), solid)
+    assert np.array_equal(placed.transform, expected.transform)
+    refitted = fitter.fit(hypothesis, keypoints, TURN, solid=solid)
+    assert not np.array_equal(refitted.transform, expected.transform)  # the ICP moved it
+
+
 def test_the_same_size_needs_no_refit(fitter, box_chair) -> None:
     keypoints = _observe(box_chair.points)
     hypothesis = _hypothesis(POSE, keypoints)

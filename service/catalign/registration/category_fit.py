@@ -62,15 +62,20 @@ class CategoryFitter:
         *,
         solid: np.ndarray,
         floor_level: float | None = None,
+        refit: bool = True,
     ) -> Hypothesis:
         """The three steps (module docstring) for the winner ``hypothesis`` of the query's
         ``keypoints``, whose levelling turn is ``turn``; ``solid`` are the key points with
         neighbours (:func:`supported`, once per query), which give the observed extent.
         ``floor_level`` is the height (along ``turn``'s up) of a floor found under the query
-        and set aside: the chair stands on it, so its observed extent reaches down to it."""
-        heights = keypoints @ turn[1]
-        bottom = heights.min() if floor_level is None else min(heights.min(), floor_level)
-        hypothesis = self.fit_at_observed_size(hypothesis, keypoints, float(heights.max() - bottom))
+        and set aside: the chair stands on it, so its observed extent reaches down to it.
+        Without ``refit`` the first step (an ICP) is skipped: an alternative is only stood
+        upright and centred."""
+        if refit:
+            heights = keypoints @ turn[1]
+            bottom = heights.min() if floor_level is None else min(heights.min(), floor_level)
+            observed_height = float(heights.max() - bottom)
+            hypothesis = self.fit_at_observed_size(hypothesis, keypoints, observed_height)
         hypothesis = self.stand_upright(hypothesis, turn)
         return self.centre_on_extent(hypothesis, solid, floor_level)
 

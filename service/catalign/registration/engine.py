@@ -208,10 +208,15 @@ class Engine:
             tried = [item for _, item in refined]
             tried += [item for _, item in found if id(item) not in sources]
             finished = [
-                self._finish(search, item, tried, estimate_scale, oriented.floor_level)
-                if search is searches[0]
-                else self._finish(search, item, tried, estimate_scale, None)
-                for search, item in answers
+                self._finish(
+                    search,
+                    item,
+                    tried,
+                    estimate_scale,
+                    oriented.floor_level if search is searches[0] else None,
+                    refit=rank == 0,
+                )
+                for rank, (search, item) in enumerate(answers)
             ]
 
         # Answer: the winner, its fit, its alternatives and every candidate's best score.
@@ -284,16 +289,25 @@ class Engine:
         tried: list[Scored],
         estimate_scale: bool,
         floor_level: float | None,
+        *,
+        refit: bool,
     ) -> _Finished:
         """A refined answer made final: with an up, another instance (a loose fit) is given
-        the observed chair's frame (the category fit); then its statistics, and the evidence
-        (against every pose ``tried``) and confidence of it."""
+        the observed chair's frame (the category fit; its ICP at the observed size only with
+        ``refit``, the winner's: an alternative's would cost as much as the winner's own
+        search); then its statistics, and the evidence (against every pose ``tried``) and
+        confidence of it."""
         pose = item.hypothesis
         fit = self.refiner.fit(pose, search.keypoints)
         turn = search.turn
         if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
             pose = self.category_fitter.fit(
-                pose, search.keypoints, turn, solid=search.solid, floor_level=floor_level
+                pose,
+                search.keypoints,
+                turn,
+                solid=search.solid,
+                floor_level=floor_level,
+                refit=refit,
             )
             fit = self.refiner.fit(pose, search.keypoints)
         explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
