@@ -35,7 +35,7 @@ from catalign.evaluation.protocol import (
 from catalign.evaluation.report import summarise
 from catalign.features.extractor import LearnedExtractor
 from catalign.registration.base import LibraryShape
-from catalign.registration.config import EngineConfig
+from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
 
@@ -52,18 +52,8 @@ DEFAULT_CONFIGS = [
 
 def parse_config(text: str) -> EngineConfig:
     """``a=1,b=0.5,c=none`` as an engine configuration (``default``: the defaults); an unknown
-    field or a bad value raises pydantic's ValidationError."""
-    if text == "default":
-        return EngineConfig()
-    options: dict[str, Any] = {}
-    for item in text.split(","):
-        name, _, value = item.partition("=")
-        if value.strip().lower() == "none":
-            options[name.strip()] = None
-            continue
-        number = float(value)
-        options[name.strip()] = int(number) if number.is_integer() else number
-    return EngineConfig.model_validate(options)
+    field or a bad value raises :class:`~catalign.errors.ConfigError`."""
+    return parse_options([] if text == "default" else text.split(","))
 
 
 def engine_ms(outcome: CaseOutcome) -> float:

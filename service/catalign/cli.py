@@ -69,15 +69,27 @@ def evaluate(
         ),
     ] = False,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
+    engine: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME=VALUE",
+            help="An engine option (a field of EngineConfig, e.g. top_k=5; repeat the option); "
+            "learned and fpfh-engine only.",
+        ),
+    ] = None,
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
     from catalign.data.shapes import SharedChairs
     from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
+    from catalign.registration.config import parse_options
     from catalign.registration.methods import check_method
 
     settings = tuple(setting or ("same", "cross"))
     with exit_on_error():
         check_method(method)  # an unknown name fails before any data is read
+        engine_config = None if engine is None else parse_options(engine)
+        if engine_config is not None and method == "fpfh":
+            raise ConfigError("--engine options apply to learned and fpfh-engine, not to fpfh")
         for name in settings:
             if name not in ("same", "cross"):
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
@@ -97,6 +109,7 @@ def evaluate(
             model_dir=model_dir,
             up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
             floor=floor,
+            engine=engine_config,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
     prior = "" if config.up_prior else "-no-up"
@@ -330,17 +343,27 @@ def serve(
     read_only: Annotated[
         bool | None, typer.Option("--read-only", help="Refuse library changes.")
     ] = None,
+    engine: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME=VALUE",
+            help="An engine option (a field of EngineConfig, e.g. top_k=5; repeat the option), "
+            "over CATALIGN_ENGINE__NAME variables (in effect: engine at GET /info).",
+        ),
+    ] = None,
 ) -> None:
     """Serve registration over HTTP (FastAPI on uvicorn) and gRPC.
 
     Every setting can also come from a CATALIGN_* environment variable (CATALIGN_PORT,
-    CATALIGN_MAX_POINTS, ...; see catalign.api.settings); flags override them.
+    CATALIGN_MAX_POINTS, CATALIGN_ENGINE__TOP_K, ...; see catalign.api.settings); flags
+    override them.
     """
     import uvicorn
     from pydantic import ValidationError
 
     from catalign.api.app import create_app
     from catalign.api.settings import ServiceSettings
+    from catalign.registration.config import parse_options
     from catalign.threads import limit_malloc_arenas
 
     flags = {
@@ -368,6 +391,9 @@ def serve(
             typer.echo(f"error: {first['msg'].removeprefix('Value error, ')}", err=True)
         raise typer.Exit(code=2) from None
     with exit_on_error():
+        if engine:  # over the CATALIGN_ENGINE__* variables, field by field
+            merged = parse_options(engine, base=settings.engine)
+            settings = settings.model_copy(update={"engine": merged})
         _check_serve_paths(settings.model_dir, settings.library)
     logging.getLogger().setLevel(settings.log_level.upper())
     limit_malloc_arenas(2)

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import httpx
 import pytest
 from pydantic import ValidationError
 from typer.testing import CliRunner
@@ -13,6 +17,9 @@ from catalign.api.settings import DEFAULT_MODEL_DIR, ServiceSettings
 from catalign.cli import app
 from catalign.registration.config import EngineConfig
 from catalign.threads import cgroup_cpu_limit
+
+if TYPE_CHECKING:
+    from tests.api.conftest import ServerProcess
 
 
 def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -78,6 +85,20 @@ def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
     assert bad_port.exit_code == 2 and "--port" in bad_port.output
     no_weights = runner.invoke(app, ["serve", "--model-dir", str(tmp_path)])
     assert no_weights.exit_code == 2 and "no trained weights" in no_weights.output
+    typo = runner.invoke(app, ["serve", "--engine", "topk=4"])
+    assert typo.exit_code == 2 and "unknown engine option 'topk'" in typo.output
+    assert "Traceback" not in typo.output
+
+
+def test_serve_engine_flags_go_over_the_variables_field_by_field(
+    serve_process: Callable[..., AbstractContextManager[ServerProcess]], library_dir: Path
+) -> None:
+    flags = ("--engine", "refine=2", "--engine", "alternatives=1")
+    environment = {"CATALIGN_ENGINE__TOP_K": "4", "CATALIGN_ENGINE__REFINE": "5"}
+    with serve_process(library_dir, *flags, env=environment) as server:
+        engine = httpx.get(f"{server.url}/info", timeout=10).json()["engine"]
+    assert (engine["top_k"], engine["refine"], engine["alternatives"]) == (4, 2, 1)
+    assert engine["match_points"] == EngineConfig().match_points
 
 
 def test_the_api_key_comes_from_the_environment_or_a_file(

@@ -42,6 +42,7 @@ from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.registration.config import parse_options
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -217,6 +218,7 @@ def resolve_settings(
     assert command[:2] == ["catalign", "serve"], shlex.join(command)
     serve = typer.main.get_command(cli_app).commands["serve"]  # type: ignore[attr-defined]
     parsed = serve.make_context("serve", command[2:]).params
+    engine_options = parsed.pop("engine") or ()
     flags = {k: v for k, v in parsed.items() if v is not None}
     for name in list(os.environ):
         if name.startswith("CATALIGN_"):
@@ -231,7 +233,9 @@ def resolve_settings(
             value = str(tmp_path / "api-key")
             Path(value).write_text(f"{STAND_IN_KEY}\n", encoding="utf-8")
         monkeypatch.setenv(name, value)
-    return ServiceSettings(**flags)
+    settings = ServiceSettings(**flags)
+    engine = parse_options(engine_options, base=settings.engine)
+    return settings.model_copy(update={"engine": engine})
 
 
 def image_uid() -> int:

@@ -12,6 +12,7 @@ from catalign.data.shapes import procedural_shape
 from catalign.evaluation.protocol import build_cases
 from catalign.evaluation.report import COLUMNS
 from catalign.geometry.se3 import transform
+from catalign.registration.config import EngineConfig
 
 runner = CliRunner()
 # FPFH proposes no orientation and has no confidence: those columns are None.
@@ -165,3 +166,29 @@ def test_missing_chairs_folder_exits_2(tmp_path: Path):
 def test_views_must_be_positive():
     result = runner.invoke(app, ["evaluate", "--views", "0"])
     assert result.exit_code == 2  # click's own usage error
+
+
+def test_engine_options_are_refused_for_the_classic_baseline(tmp_path: Path):
+    out = tmp_path / "r.json"
+    result = runner.invoke(
+        app, ["evaluate", "--method", "fpfh", "--engine", "top_k=3", "--out", str(out)]
+    )
+    assert result.exit_code == 2
+    assert "--engine options apply to learned and fpfh-engine" in result.output
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_engine_options_reach_the_engine_and_the_report(chairs_root: Path, tmp_path: Path):
+    out = tmp_path / "engine.json"
+    args = ["evaluate", "--method", "learned", "--max-shapes", "2", "--views", "1"]
+    args += ["--setting", "same", "--engine", "top_k=1", "--engine", "alternatives=0"]
+    result = runner.invoke(app, [*args, "--chairs-dir", str(chairs_root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(out.read_text())
+    engine = report["config"]["engine"]
+    assert (engine["top_k"], engine["alternatives"]) == (1, 0)
+    assert engine["match_points"] == EngineConfig().match_points
+    cases = report["cases"]["same"]
+    assert len(cases) == 2
+    assert all(case.get("alternatives", []) == [] for case in cases)  # alternatives=0 reached it

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
 import pytest
 from pydantic import ValidationError
 
+from catalign.errors import ConfigError
 from catalign.geometry.distance_grid import TRUNCATION_VOXELS
-from catalign.registration.config import EngineConfig, from_config
+from catalign.registration.config import EngineConfig, from_config, parse_options
 
 # The engine's defaults as measured (bench/tradeoff.py); a change here is a change of behaviour.
 DEFAULTS = {
@@ -102,3 +104,28 @@ def test_from_config_fills_a_stages_options_by_name() -> None:
 
     with pytest.raises(AttributeError, match="surprise"):
         from_config(unknown, config, distance=0.05)
+
+
+def test_options_replace_the_named_fields_of_a_base() -> None:
+    config = parse_options(["top_k=4", "model_points=none", " ransac_factor = 1.5 "])
+    assert (config.top_k, config.model_points, config.ransac_factor) == (4, None, 1.5)
+    assert isinstance(config.top_k, int)
+    assert config.match_points == EngineConfig().match_points
+    over = parse_options(["refine=2"], base=config)
+    assert (over.top_k, over.model_points, over.refine) == (4, None, 2)
+    assert parse_options([]) == EngineConfig()
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ("topk=4", "unknown engine option 'topk'; the options: headings, top_k"),
+        ("top_k=0", "engine option top_k: Input should be greater than or equal to 1"),
+        ("top_k=many", "'many' is not a number"),
+        ("top_k", "is not NAME=VALUE"),
+        ("=4", "is not NAME=VALUE"),
+    ],
+)
+def test_a_bad_option_is_refused_naming_it(option: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        parse_options([option])

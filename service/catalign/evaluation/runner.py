@@ -20,6 +20,7 @@ from catalign.evaluation.protocol import (
     run_cases,
 )
 from catalign.evaluation.report import format_table, summarise
+from catalign.registration.config import EngineConfig
 from catalign.registration.methods import build_registrar
 
 
@@ -36,6 +37,7 @@ class EvaluationConfig:
     model_dir: Path | None = None
     up_prior: bool = True
     floor: bool = False
+    engine: EngineConfig | None = None
 
 
 def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
@@ -47,7 +49,7 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     keeps a ring of floor around every observed chair (upright only).
     """
     up = WORLD_UP if config.up_prior else None
-    registrar = build_registrar(config.method, config.model_dir, up)
+    registrar = build_registrar(config.method, config.model_dir, up, config.engine)
     val_ids = _first(chairs.ids("val"), config.max_shapes)
     train_ids = _first(chairs.ids("train"), config.max_shapes)
     observed = metric_shapes(chairs, val_ids)
@@ -62,7 +64,11 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     rows = [s["row"] for s in summaries]
     return {
         "config": config.__dict__
-        | {"settings": list(config.settings), "model_dir": str(config.model_dir or "")},
+        | {
+            "settings": list(config.settings),
+            "model_dir": str(config.model_dir or ""),
+            "engine": _engine_in_effect(config),
+        },
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": platform.machine(),
         "split": {"val": len(val_ids), "train": len(train_ids)},
@@ -79,3 +85,11 @@ def write_report(report: dict[str, Any], path: Path) -> None:
 
 def _first(ids: Sequence[str], count: int | None) -> list[str]:
     return list(ids if count is None else ids[:count])
+
+
+def _engine_in_effect(config: EvaluationConfig) -> dict[str, Any] | None:
+    """The engine options the run used (the report's record of them): None for the classic
+    baseline, which has no engine."""
+    if config.method == "fpfh":
+        return None
+    return (config.engine or EngineConfig()).model_dump()

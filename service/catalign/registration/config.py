@@ -12,11 +12,12 @@ refused, so a typo in ``CATALIGN_ENGINE__<FIELD>`` or a benchmark's ``name=value
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from catalign.errors import ConfigError
 from catalign.registration.validation import FINE_CELLS, MIN_VOXELS
 
 Stage = TypeVar("Stage")
@@ -117,6 +118,35 @@ class EngineConfig(BaseModel):
     pass_voxels: int = Field(default=32_000, ge=1)
     """Query voxels, over all headings, that one forward pass may describe (bounds its
     memory)."""
+
+
+def parse_options(options: Iterable[str], base: EngineConfig | None = None) -> EngineConfig:
+    """``base`` (the defaults when None) with the fields named in ``name=value`` options
+    replaced (``none`` for None, numbers as numbers): what the CLI's ``--engine`` and
+    ``bench/tradeoff.py`` take. An unknown field or a bad value raises :class:`ConfigError`
+    saying which."""
+    fields: dict[str, Any] = {}
+    for option in options:
+        name, equals, value = (part.strip() for part in option.partition("="))
+        if not name or not equals or not value:
+            raise ConfigError(f"engine option {option!r} is not NAME=VALUE (e.g. top_k=5)")
+        if value.lower() == "none":
+            fields[name] = None
+            continue
+        try:
+            number = float(value)
+        except ValueError:
+            raise ConfigError(f"engine option {option!r}: {value!r} is not a number") from None
+        fields[name] = int(number) if number.is_integer() else number
+    try:
+        return EngineConfig.model_validate((base or EngineConfig()).model_dump() | fields)
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(map(str, first["loc"])) or "engine"
+        if first["type"] == "extra_forbidden":
+            known = ", ".join(EngineConfig.model_fields)
+            raise ConfigError(f"unknown engine option {where!r}; the options: {known}") from None
+        raise ConfigError(f"engine option {where}: {first['msg']}") from None
 
 
 def from_config(

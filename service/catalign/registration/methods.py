@@ -11,6 +11,9 @@
 * ``fpfh-engine``: the learned method's index and engine with FPFH features in place of the
   learned ones (one heading: FPFH does not depend on orientation), so that the two features
   are compared with everything else equal.
+
+The two engine methods take an :class:`~catalign.registration.config.EngineConfig` (the
+defaults when None); the classic baseline has no engine and refuses one.
 """
 
 from __future__ import annotations
@@ -22,33 +25,40 @@ import numpy as np
 
 from catalign.errors import ConfigError
 from catalign.registration.base import Registrar
+from catalign.registration.config import EngineConfig
 
 
-def _fpfh(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+def _fpfh(model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | None) -> Registrar:
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.pipeline import FeatureRegistrar
 
+    if engine is not None:
+        raise ConfigError("engine options apply to learned and fpfh-engine, not to fpfh")
     voxel = 0.025
     extractor = FPFHExtractor(voxel)
     return FeatureRegistrar(extractor, name="fpfh", ransac_distance=1.5 * voxel, icp_distance=voxel)
 
 
-def _learned(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+def _learned(
+    model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | None
+) -> Registrar:
     from catalign.features.extractor import LearnedExtractor
     from catalign.registration.indexed import IndexedRegistrar
 
     extractor = LearnedExtractor(model_dir)
-    return IndexedRegistrar(extractor, name="learned", up=up)
+    return IndexedRegistrar(extractor, name="learned", up=up, config=engine)
 
 
-def _fpfh_engine(model_dir: Path | None, up: np.ndarray | None) -> Registrar:
+def _fpfh_engine(
+    model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | None
+) -> Registrar:
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.indexed import IndexedRegistrar
 
-    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up)
+    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up, config=engine)
 
 
-METHODS: dict[str, Callable[[Path | None, np.ndarray | None], Registrar]] = {
+METHODS: dict[str, Callable[[Path | None, np.ndarray | None, EngineConfig | None], Registrar]] = {
     "fpfh": _fpfh,
     "learned": _learned,
     "fpfh-engine": _fpfh_engine,
@@ -62,9 +72,13 @@ def check_method(name: str) -> None:
 
 
 def build_registrar(
-    name: str, model_dir: Path | None = None, up: np.ndarray | None = None
+    name: str,
+    model_dir: Path | None = None,
+    up: np.ndarray | None = None,
+    engine: EngineConfig | None = None,
 ) -> Registrar:
-    """The registrar called ``name``; ``model_dir`` holds the learned method's weights and
-    ``up`` is the world direction of the chair's up axis when known."""
+    """The registrar called ``name``; ``model_dir`` holds the learned method's weights,
+    ``up`` is the world direction of the chair's up axis when known and ``engine`` the
+    engine methods' configuration."""
     check_method(name)
-    return METHODS[name](model_dir, up)
+    return METHODS[name](model_dir, up, engine)
