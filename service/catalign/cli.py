@@ -17,6 +17,16 @@ from catalign.cli_support import exit_on_error
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
 
+# ``--engine FIELD=VALUE`` (repeatable): EngineConfig fields, for the commands that run the engine.
+EngineOptions = Annotated[
+    list[str] | None,
+    typer.Option(
+        metavar="FIELD=VALUE",
+        help="An engine option, a field of catalign.registration.config.EngineConfig (e.g. "
+        "top_k=5); repeat the option for several.",
+    ),
+]
+
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(library_app, name="library")
 
@@ -69,14 +79,7 @@ def evaluate(
         ),
     ] = False,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
-    engine: Annotated[
-        list[str] | None,
-        typer.Option(
-            metavar="NAME=VALUE",
-            help="An engine option (a field of EngineConfig, e.g. top_k=5; repeat the option); "
-            "learned and fpfh-engine only.",
-        ),
-    ] = None,
+    engine: EngineOptions = None,
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
     from catalign.data.shapes import SharedChairs
@@ -343,20 +346,13 @@ def serve(
     read_only: Annotated[
         bool | None, typer.Option("--read-only", help="Refuse library changes.")
     ] = None,
-    engine: Annotated[
-        list[str] | None,
-        typer.Option(
-            metavar="NAME=VALUE",
-            help="An engine option (a field of EngineConfig, e.g. top_k=5; repeat the option), "
-            "over CATALIGN_ENGINE__NAME variables (in effect: engine at GET /info).",
-        ),
-    ] = None,
+    engine: EngineOptions = None,
 ) -> None:
     """Serve registration over HTTP (FastAPI on uvicorn) and gRPC.
 
     Every setting can also come from a CATALIGN_* environment variable (CATALIGN_PORT,
     CATALIGN_MAX_POINTS, CATALIGN_ENGINE__TOP_K, ...; see catalign.api.settings); flags
-    override them.
+    override them, --engine options field by field (those in effect: engine at GET /info).
     """
     import uvicorn
     from pydantic import ValidationError
