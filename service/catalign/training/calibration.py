@@ -39,7 +39,7 @@ from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.ncc import NCCFrame
 from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.base import LibraryShape, RegistrationResult
-from catalign.registration.confidence import SIGNALS, Calibrator, Evidence
+from catalign.registration.confidence import CALIBRATOR_FILE, SIGNALS, Calibrator, Evidence
 from catalign.registration.indexed import IndexedRegistrar
 
 # The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
@@ -204,11 +204,11 @@ def run(
     """Collect samples on the training chairs with ``extractor`` (or read ``samples_file``),
     fit, and save the calibrator and its samples to ``config.out``."""
     started = time.perf_counter()
-    if samples_file is not None or extractor is None:
-        if samples_file is None:
-            raise ConfigError("calibration needs weights to register views, or --samples")
+    if samples_file is not None:
         samples = Samples.load(samples_file)
         source = f"samples read from {samples_file}"
+    elif extractor is None:
+        raise ConfigError("calibration needs weights to register views, or --samples")
     else:
         ids = list(chairs.ids("train"))
         ids = ids if config.max_shapes is None else ids[: config.max_shapes]
@@ -248,9 +248,9 @@ def _collection(config: CalibrationConfig, samples_file: Path | None) -> dict[st
     those of the run that collected them (its card beside the samples)."""
     if samples_file is None:
         return {"views": config.views, "seed": config.seed, "pose_modes": list(config.pose_modes)}
-    card_path = samples_file.parent / "calibrator.json"
+    card_path = samples_file.parent / CALIBRATOR_FILE
     if not card_path.is_file():
-        return {"collected_by": "unknown (no calibrator.json beside the samples)"}
+        return {"collected_by": f"unknown (no {CALIBRATOR_FILE} beside the samples)"}
     card = json.loads(card_path.read_text()).get("card", {})
     data = card.get("data", {})
     return {"collected_by": card.get("command", "unknown")} | {
