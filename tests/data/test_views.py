@@ -332,6 +332,21 @@ def test_point_chair_floor_keeps_the_chair_view(box_chair: Shape, rng):
     assert 0.4 * disc_count < len(extra) < disc_count
 
 
+def test_a_floor_view_is_its_floor_free_twin_plus_the_floor(procedural_chair: Shape):
+    # same camera, same seed: the chair's noisy points are the floor-free view's, point for
+    # point, so comparing the two measures the floor alone
+    pose = _upright_pose(0.4, (0.2, 0.1), procedural_chair.height / 2)
+    camera = camera_at(pose[:3, 3], 2.2, 35.0, 60.0)
+    points_only = Shape("procedural-points", procedural_chair.points)
+    for shape in (procedural_chair, points_only):
+        plain = render_view(shape, pose, camera, np.random.default_rng(11))
+        kept = render_view(shape, pose, camera, np.random.default_rng(11), floor=Floor())
+        np.testing.assert_array_equal(kept[: len(plain)], plain, err_msg=shape.shape_id)
+        added = kept[len(plain) :]
+        assert len(added) > 1000, shape.shape_id
+        assert np.abs(added[:, 2]).max() < 0.05, shape.shape_id  # noisy floor at z = 0
+
+
 def test_floor_points_get_depth_noise(procedural_chair: Shape):
     pose = _upright_pose(2.0, (0.0, 0.0), procedural_chair.height / 2)
     camera = camera_at(pose[:3, 3], 2.0, 30.0, 0.0)

@@ -142,6 +142,13 @@ def fixed_viewpoints(target: np.ndarray, distance: float = 2.0, **kwargs) -> lis
 
 def render_mesh_view(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> np.ndarray:
     """Ray-cast a mesh (world coordinates) into the camera; return the hit points."""
+    return _ray_cast(vertices, faces, camera)[0]
+
+
+def _ray_cast(
+    vertices: np.ndarray, faces: np.ndarray, camera: Camera
+) -> tuple[np.ndarray, np.ndarray]:
+    """The hit points of the camera's pixel rays, in pixel order, and the face each hit."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -160,7 +167,8 @@ def render_mesh_view(vertices: np.ndarray, faces: np.ndarray, camera: Camera) ->
     t_hit = hits["t_hit"].numpy().reshape(-1)
     rays_np = rays.numpy().reshape(-1, 6)
     keep = np.isfinite(t_hit)
-    return (rays_np[keep, :3] + t_hit[keep, None] * rays_np[keep, 3:]).astype(np.float64)
+    points = (rays_np[keep, :3] + t_hit[keep, None] * rays_np[keep, 3:]).astype(np.float64)
+    return points, hits["primitive_ids"].numpy().reshape(-1)[keep].astype(np.int64)
 
 
 def visible_point_view(points: np.ndarray, camera: Camera) -> np.ndarray:
@@ -281,10 +289,11 @@ def unoccluded_floor(
     return visible
 
 
-def _point_view_with_floor(
+def _floor_past_points(
     points: np.ndarray, camera: Camera, disc: tuple[np.ndarray, float], rng: np.random.Generator
 ) -> np.ndarray:
-    """Hidden point removal of the chair, plus the floor points its surface does not hide.
+    """The floor points a point-only chair does not hide: the disc sampled at the chair's own
+    density, less what its splats cover.
 
     The splat radius is three mean point spacings: a ray through a uniformly sampled surface
     then misses every splat with probability exp(-2.25 pi), under 0.1%, while the chair's
@@ -294,8 +303,26 @@ def _point_view_with_floor(
     """
     density = surface_density(points)
     floor_points = disc_points(*disc, density, rng)
-    visible = unoccluded_floor(floor_points, points, camera.eye, 1.5 / np.sqrt(density))
-    return np.vstack([visible_point_view(points, camera), floor_points[visible]])
+    return floor_points[unoccluded_floor(floor_points, points, camera.eye, 1.5 / np.sqrt(density))]
+
+
+def _floor_past_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    camera: Camera,
+    disc: tuple[np.ndarray, float],
+    segments: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast a mesh chair standing on the floor disc: the chair's hits (those of the chair
+    alone: the floor is under it and hides none of it) and the floor's, each in pixel order."""
+    disc_vertices, disc_faces = disc_mesh(*disc, segments)
+    hits, face = _ray_cast(
+        np.vstack([vertices, disc_vertices]),
+        np.vstack([faces, disc_faces + len(vertices)]),
+        camera,
+    )
+    on_chair = face < len(faces)
+    return hits[on_chair], hits[~on_chair]
 
 
 def _floor_under(
@@ -326,21 +353,24 @@ def render_view(
 
     Meshes are ray-cast; point-only shapes use hidden point removal. With ``floor`` the view
     also holds the floor around the chair, hidden where the chair covers it and noisy like the
-    rest (upright poses and cameras above the floor only: ValueError otherwise).
+    rest (upright poses and cameras above the floor only: ValueError otherwise). The chair's
+    points come first and are those of the same view without floor, noise included (the
+    floor's random draws come after the chair's), so the two views differ by the floor alone.
     """
-    if shape.mesh is not None:
-        vertices, faces = transform(shape.mesh.vertices, pose), shape.mesh.faces
-        if floor is not None:
-            disc = _floor_under(vertices, pose, camera, floor)
-            disc_vertices, disc_faces = disc_mesh(*disc, floor.segments)
-            faces = np.vstack([faces, disc_faces + len(vertices)])
-            vertices = np.vstack([vertices, disc_vertices])
-        seen = render_mesh_view(vertices, faces, camera)
+    posed = transform(shape.points if shape.mesh is None else shape.mesh.vertices, pose)
+    disc = None if floor is None else _floor_under(posed, pose, camera, floor)
+    mesh_floor = None
+    if shape.mesh is None:
+        chair = visible_point_view(posed, camera)
+    elif disc is None:
+        chair = render_mesh_view(posed, shape.mesh.faces, camera)
     else:
-        points = transform(shape.points, pose)
-        if floor is None:
-            seen = visible_point_view(points, camera)
-        else:
-            disc = _floor_under(points, pose, camera, floor)
-            seen = _point_view_with_floor(points, camera, disc, rng)
-    return add_depth_noise(seen, camera, rng, noise) if noisy else seen
+        chair, mesh_floor = _floor_past_mesh(posed, shape.mesh.faces, camera, disc, floor.segments)
+    seen = add_depth_noise(chair, camera, rng, noise) if noisy else chair
+    if disc is None:
+        return seen
+    floor_seen = (
+        mesh_floor if shape.mesh is not None else _floor_past_points(posed, camera, disc, rng)
+    )
+    floor_seen = add_depth_noise(floor_seen, camera, rng, noise) if noisy else floor_seen
+    return np.vstack([seen, floor_seen])
