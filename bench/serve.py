@@ -132,9 +132,17 @@ def free_port() -> int:
 
 class ServerProcess:
     """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file.
-    ``mode``: its workers are ``processes`` (one engine each) or ``threads`` (one engine)."""
+    ``mode``: its workers are ``processes`` (one engine each) or ``threads`` (one engine);
+    ``library``: the library it serves."""
 
-    def __init__(self, workers: int, queue: int, mode: str, threads_per_worker: int) -> None:
+    def __init__(
+        self,
+        workers: int,
+        queue: int,
+        mode: str,
+        threads_per_worker: int,
+        library: Path = LIBRARY,
+    ) -> None:
         self.port = free_port()
         self.grpc_port = free_port()
         while self.grpc_port == self.port:
@@ -155,7 +163,7 @@ class ServerProcess:
         env["CATALIGN_LOG_LEVEL"] = "warning"  # no line per request in the timed loop
         flags = {
             "--model-dir": MODEL_DIR,
-            "--library": LIBRARY,
+            "--library": library,
             "--host": "127.0.0.1",
             "--port": self.port,
             "--grpc-port": self.grpc_port,

@@ -48,6 +48,20 @@ def test_entry_files_are_byte_reproducible(files, extractor):
         np.testing.assert_array_equal(npz["features"], entry.features)
 
 
+def test_loaded_entries_view_their_files_so_processes_share_them(small_library, extractor):
+    library = load(small_library, extractor.fingerprint)
+    for entry in library:
+        for array in (entry.points, entry.keypoints, entry.features, entry.grid.values):
+            assert not array.flags.owndata  # a view of the file's map: no private copy
+            assert not array.flags.writeable
+    # the map outlives a newer library deleting the file (entries are never changed in place)
+    entry = library["a"]
+    expected = entry.features.copy()
+    for path in (small_library / "entries").iterdir():
+        path.unlink()
+    np.testing.assert_array_equal(entry.features, expected)
+
+
 def test_crash_before_the_manifest_keeps_the_old_library(
     small_library, files, extractor, snapshot, monkeypatch
 ):

@@ -3,7 +3,7 @@
 A library is a directory::
 
     manifest.json                      format version, extractor, timestamps, one record per entry
-    entries/<id>-<sha256[:12]>.npz     one entry's arrays (np.load(..., allow_pickle=False))
+    entries/<id>-<sha256[:12]>.npz     one entry's arrays, aligned to be memory-mapped (npz.py)
     .lock                              flock(2)ed by writers
 
 Entry files are content-addressed and written to a temporary name, fsynced and renamed, so a
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
-import io
 import json
 import logging
 import os
@@ -37,6 +36,7 @@ from catalign.atomic import atomic_write_bytes, fsync_directory
 from catalign.errors import LibraryCorruptError, LibraryError
 from catalign.geometry.distance_grid import DistanceGrid
 from catalign.library.entry import LibraryEntry
+from catalign.library.npz import map_file, mapped_arrays, npz_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +44,6 @@ FORMAT_VERSION = 2  # 2: entries hold their surface's distance grid
 MANIFEST_NAME = "manifest.json"
 ENTRIES_DIR = "entries"
 LOCK_NAME = ".lock"
-_ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # fixed member timestamps: the same entry gives the same bytes
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _STRING_FIELDS = ("model_id", "source", "source_sha256", "units")
 
@@ -234,7 +233,8 @@ def writer_lock(library_dir: Path) -> Iterator[None]:
 
 
 def entry_bytes(entry: LibraryEntry) -> bytes:
-    """An entry as ``.npz`` bytes (uncompressed, like ``np.savez``, but byte-reproducible)."""
+    """An entry as ``.npz`` bytes (uncompressed, byte-reproducible, each array aligned so that
+    readers can map it: :mod:`~catalign.library.npz`)."""
     arrays = {
         "model_id": np.array(entry.model_id),
         "points": np.ascontiguousarray(entry.points, dtype=np.float32),
@@ -251,13 +251,7 @@ def entry_bytes(entry: LibraryEntry) -> bytes:
         "source_sha256": np.array(entry.source_sha256),
         "units": np.array(entry.units),
     }
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
-        for name, array in arrays.items():
-            member = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_TIME)
-            with archive.open(member, "w", force_zip64=True) as handle:
-                np.lib.format.write_array(handle, array, allow_pickle=False)
-    return buffer.getvalue()
+    return npz_bytes(arrays)
 
 
 def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
@@ -285,12 +279,13 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
 
 
 def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> LibraryEntry:
-    """Read one entry file and check it against its record.
+    """Read one entry file and check it against its record; its arrays view a read-only map of
+    the file, shared with every process that reads the same library.
 
     A missing file raises FileNotFoundError (the caller may re-read a manifest that changed
     meanwhile); any other problem raises LibraryCorruptError naming the entry.
     """
-    data = (library_dir / record.file).read_bytes()
+    data = map_file(library_dir / record.file)
 
     def corrupt(problem: str) -> LibraryCorruptError:
         return LibraryCorruptError(
@@ -304,8 +299,7 @@ def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> Library
             f"fails its checksum (sha256 {actual[:12]}..., expected {record.sha256[:12]}...)"
         )
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as archive:
-            arrays = {name: archive[name] for name in archive.files}
+        arrays = mapped_arrays(data)
     except (OSError, ValueError, zipfile.BadZipFile) as exc:
         raise corrupt(f"is not a readable .npz file ({exc})") from exc
     try:
