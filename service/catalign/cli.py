@@ -13,19 +13,9 @@ from typing import Annotated
 
 import typer
 
-from catalign.cli_support import exit_on_error
+from catalign.cli_support import EngineOptions, exit_on_error
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
-
-# ``--engine FIELD=VALUE`` (repeatable): EngineConfig fields, for the commands that run the engine.
-EngineOptions = Annotated[
-    list[str] | None,
-    typer.Option(
-        metavar="FIELD=VALUE",
-        help="An engine option, a field of catalign.registration.config.EngineConfig (e.g. "
-        "top_k=5); repeat the option for several.",
-    ),
-]
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(library_app, name="library")

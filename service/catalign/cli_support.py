@@ -1,4 +1,5 @@
-"""What every ``catalign`` command shares: errors raised on purpose become one sentence.
+"""What every ``catalign`` command shares: errors raised on purpose become one sentence, and
+the ``--engine FIELD=VALUE`` option.
 
 A :class:`~catalign.errors.CatalignError` is the user's to act on, so it is printed as
 ``error: <message>`` with exit code 2, never as a traceback; anything else is a bug and keeps
@@ -9,10 +10,21 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Annotated
 
 import typer
 
 from catalign.errors import CatalignError
+
+# ``--engine FIELD=VALUE`` (repeatable): EngineConfig fields, for the commands that take them.
+EngineOptions = Annotated[
+    list[str] | None,
+    typer.Option(
+        metavar="FIELD=VALUE",
+        help="An engine option, a field of catalign.registration.config.EngineConfig (e.g. "
+        "top_k=5); repeat the option for several.",
+    ),
+]
 
 
 @contextmanager

@@ -17,9 +17,10 @@ from catalign.api.settings import DEFAULT_MODEL_DIR, ServiceSettings
 from catalign.cli import app
 from catalign.registration.config import EngineConfig
 from catalign.threads import cgroup_cpu_limit
+from catalign_client import Client
 
 if TYPE_CHECKING:
-    from tests.api.conftest import ServerProcess
+    from tests.api.conftest import ServerProcess, View
 
 
 def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -99,6 +100,28 @@ def test_serve_engine_flags_go_over_the_variables_field_by_field(
         engine = httpx.get(f"{server.url}/info", timeout=10).json()["engine"]
     assert (engine["top_k"], engine["refine"], engine["alternatives"]) == (4, 2, 1)
     assert engine["match_points"] == EngineConfig().match_points
+
+
+def test_a_librarys_engine_options_apply_under_the_services(
+    serve_process: Callable[..., AbstractContextManager[ServerProcess]],
+    library_copy: Path,
+    views: Callable[..., View],
+) -> None:
+    options = ("--engine", "alternatives=0", "--engine", "top_k=2", "--engine", "refine=4")
+    configured = CliRunner().invoke(app, ["library", "configure", str(library_copy), *options])
+    assert configured.exit_code == 0, configured.output
+    environment = {"CATALIGN_ENGINE__TOP_K": "3"}
+    with serve_process(library_copy, "--engine", "refine=2", env=environment) as server:
+        info = httpx.get(f"{server.url}/info", timeout=10).json()
+        with Client(server.url, timeout=120) as client:
+            result = client.align(views(seed=1).points, up=(0, 0, 1), seed=3)
+    assert info["library"]["engine"] == {"alternatives": 0, "top_k": 2, "refine": 4}
+    # the variable and the flag win over the library, the library over the defaults
+    engine = info["engine"]
+    assert (engine["top_k"], engine["refine"], engine["alternatives"]) == (3, 2, 0)
+    assert engine["match_points"] == EngineConfig().match_points
+    # the worker processes run with them too: no alternatives
+    assert result.model_id == "proc-0001" and len(result.alternatives) == 0
 
 
 def test_the_api_key_comes_from_the_environment_or_a_file(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -46,3 +47,40 @@ def test_errors_are_one_sentence_and_exit_code_2(tmp_path: Path) -> None:
     runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])
     unknown = runner.invoke(app, ["library", "remove", str(library), "ghost"])
     assert unknown.exit_code == 2 and "ghost" in unknown.stderr
+
+
+def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: Path) -> None:
+    library = tmp_path / "lib"
+    runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])
+    manifest = library / "manifest.json"
+
+    set_ = runner.invoke(
+        app, ["library", "configure", str(library), "--engine", "top_k=5", "--engine", "refine=2"]
+    )
+    assert set_.exit_code == 0, set_.output
+    assert json.loads(manifest.read_text())["engine"] == {"top_k": 5, "refine": 2}
+    # a bad option is refused in one sentence and changes nothing
+    before = manifest.read_bytes()
+    for bad, said in (("bogus=1", "unknown engine option 'bogus'"), ("top_k=0", "top_k")):
+        refused = runner.invoke(app, ["library", "configure", str(library), "--engine", bad])
+        assert refused.exit_code == 2 and said in refused.stderr, refused.output
+    assert manifest.read_bytes() == before
+    # writers keep the options; info shows them; --clear drops them
+    np.save(tmp_path / "beta.npy", procedural_shape(2).points.astype(np.float32))
+    runner.invoke(app, ["library", "add", str(library), str(tmp_path / "beta.npy")])
+    info = runner.invoke(app, ["library", "info", str(library)])
+    assert "models: 2" in info.output and "engine options: refine=2 top_k=5" in info.output
+    cleared = runner.invoke(app, ["library", "configure", str(library), "--clear"])
+    assert cleared.exit_code == 0 and "(the defaults)" in cleared.output
+    assert json.loads(manifest.read_text())["engine"] == {}
+
+
+def test_a_manifest_without_engine_options_loads_with_none(tmp_path: Path) -> None:
+    library = tmp_path / "lib"
+    runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])
+    manifest = library / "manifest.json"
+    raw = json.loads(manifest.read_text())
+    del raw["engine"]  # as written before libraries carried options
+    manifest.write_text(json.dumps(raw))
+    info = runner.invoke(app, ["library", "info", str(library)])
+    assert info.exit_code == 0 and "engine options: (the defaults)" in info.output

@@ -39,9 +39,12 @@ from catalign.api.errors import BusyError
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError
 from catalign.library.store import manifest_stamp
+from catalign.registration.config import served_config
 
 if TYPE_CHECKING:
     from catalign.api.settings import ServiceSettings
+    from catalign.features.extractor import FeatureExtractor
+    from catalign.library.index import Library
     from catalign.registration.base import RegistrationResult
     from catalign.registration.engine import Engine
 
@@ -177,7 +180,6 @@ def serve(
     (None) or until the server's end of the pipe closes."""
     from catalign.features.extractor import LearnedExtractor
     from catalign.library.index import load
-    from catalign.registration.engine import Engine
     from catalign.threads import limit_malloc_arenas, limit_threads
 
     try:
@@ -186,7 +188,7 @@ def serve(
         extractor = LearnedExtractor(settings.model_dir, threads=threads)
         stamp = manifest_stamp(settings.library)
         library = load(settings.library, extractor.fingerprint)
-        engine = Engine(extractor, library, config=settings.engine)
+        engine = served_engine(extractor, library, settings)
         warm_up(engine)
     except Exception as error:  # the server shows it and stops
         connection.send(("failed", _sendable(error)))
@@ -203,7 +205,7 @@ def serve(
             if job.library_stamp != stamp:
                 stamp = job.library_stamp
                 library = load(settings.library, extractor.fingerprint)
-                engine = Engine(extractor, library, config=settings.engine)
+                engine = served_engine(extractor, library, settings)
             result = engine.register(
                 job.points, **job.options, deadline=_Shared(job.seconds, cancelled)
             )
@@ -214,6 +216,18 @@ def serve(
             connection.send(answer)
         except OSError:  # the server is gone
             return
+
+
+def served_engine(
+    extractor: FeatureExtractor, library: Library, settings: ServiceSettings
+) -> Engine:
+    """An engine on ``library`` with the options it is served with: the library's own under
+    the service's (:func:`~catalign.registration.config.served_config`)."""
+    from catalign.registration.engine import Engine
+
+    return Engine(
+        extractor, library, config=served_config(settings.engine, library.manifest.engine)
+    )
 
 
 def warm_up(engine: Engine, points: int = 3000) -> None:

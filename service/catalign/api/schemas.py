@@ -304,6 +304,11 @@ class LibraryInfo(BaseModel):
     models: int
     fingerprint: str
     updated: str
+    engine: dict[str, JsonData] = Field(
+        default_factory=dict,
+        description="Engine options the library's manifest sets (`catalign library configure`); "
+        "CATALIGN_ENGINE__<FIELD> variables and `catalign serve --engine` override them.",
+    )
 
 
 class Versions(BaseModel):
@@ -320,8 +325,9 @@ class InfoResponse(BaseModel):
     voxel_size: float
     headings: int
     engine: EngineConfig = Field(
-        description="The engine's options in effect (``headings`` as resolved for the weights); "
-        "set them as CATALIGN_ENGINE__<FIELD> variables."
+        description="The engine's options in effect (``headings`` as resolved for the weights): "
+        "the library's (`library.engine`) under the CATALIGN_ENGINE__<FIELD> variables and "
+        "`catalign serve --engine`."
     )
     versions: Versions
 

@@ -32,7 +32,7 @@ from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
-from catalign.api.processes import EngineProcesses, Job, warm_up
+from catalign.api.processes import EngineProcesses, Job, served_engine, warm_up
 from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
@@ -213,6 +213,7 @@ class RegistrationService:
                 models=len(engine.library),
                 fingerprint=manifest.fingerprint,
                 updated=manifest.updated,
+                engine=manifest.engine,
             ),
             voxel_size=extractor.voxel_size,
             headings=engine.headings,
@@ -301,9 +302,7 @@ class RegistrationService:
         return load(self.settings.library, extractor.fingerprint)
 
     def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
-        from catalign.registration.engine import Engine
-
-        return Engine(extractor, library, config=self.settings.engine)
+        return served_engine(extractor, library, self.settings)
 
     def _register(
         self, engine: Engine, query: PointQuery, submitted: float, deadline: Deadline

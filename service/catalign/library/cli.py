@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from catalign.cli_support import exit_on_error
+from catalign.cli_support import EngineOptions, exit_on_error
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -96,6 +96,25 @@ def remove(
     typer.echo(f"{library}: {len(manifest.entries)} models")
 
 
+@app.command()
+def configure(
+    library: Annotated[Path, typer.Argument(help="Library folder.")],
+    engine: EngineOptions = None,
+    clear: Annotated[
+        bool, typer.Option(help="Drop the options the library had before setting these.")
+    ] = False,
+) -> None:
+    """Set the engine options a server runs this library with (CATALIGN_ENGINE__* variables
+    and `catalign serve --engine` still override them)."""
+    from catalign.library.index import configure as configure_library
+    from catalign.registration.config import parse_options
+
+    with exit_on_error():
+        options = parse_options(engine or ()).model_dump(exclude_unset=True)
+        manifest = configure_library(library, options, clear=clear)
+    typer.echo(f"{library}: engine options {_options(manifest.engine)}")
+
+
 @app.command("list")
 def list_command(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> None:
     """Print the model ids, one per line."""
@@ -117,5 +136,9 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
         f"library: {library}\nformat: {manifest.format_version}\n"
         f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"
         f"created: {manifest.created}\nupdated: {manifest.updated}\n"
-        f"models: {len(manifest.entries)}"
+        f"models: {len(manifest.entries)}\nengine options: {_options(manifest.engine)}"
     )
+
+
+def _options(engine: dict) -> str:
+    return " ".join(f"{k}={v}" for k, v in sorted(engine.items())) or "(the defaults)"

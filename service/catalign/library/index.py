@@ -2,9 +2,11 @@
 
 Writers describe their shapes under the library's lock and stream each entry to its own file,
 then commit a new manifest (see :mod:`catalign.library.store` for why a crash never leaves a
-half-written library). :func:`load` checks the format version, the extractor fingerprint and
-every entry's checksum, and returns a :class:`Library` that keeps all arrays in memory, with the
-descriptors and sizes stacked for :func:`~catalign.library.retrieval.shortlist`.
+half-written library); :func:`configure` sets the engine options the library is served with.
+:func:`load` checks the format version, the extractor fingerprint and every entry's checksum,
+and returns a :class:`Library` whose arrays view the entry files (memory-mapped, shared between
+processes), with the descriptors and sizes stacked for
+:func:`~catalign.library.retrieval.shortlist`.
 
 Poses found against an entry map the entry's stored coordinates, i.e. its *source coordinates
 converted to metres* (``source * unit_factor(units)``), into the observation.
@@ -14,11 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -52,6 +54,7 @@ from catalign.library.store import (
     write_entry,
     writer_lock,
 )
+from catalign.registration.config import EngineConfig, served_config
 
 if TYPE_CHECKING:  # the extractor module imports torch; the index only needs its interface
     from catalign.features.extractor import FeatureExtractor
@@ -254,6 +257,23 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
     raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
 
 
+def configure(
+    library_dir: str | Path, options: Mapping[str, Any], *, clear: bool = False
+) -> Manifest:
+    """Set engine options the library is served with (``clear``: drop the ones it had first);
+    the entries are untouched. ``options`` are checked as
+    :class:`~catalign.registration.config.EngineConfig` fields (ConfigError saying which)."""
+    library_dir = Path(library_dir)
+    with writer_lock(library_dir):
+        current = read_manifest(library_dir)
+        engine = ({} if clear else current.engine) | dict(options)
+        served_config(EngineConfig(), engine)  # refuse a bad option now, not at serve time
+        manifest = dataclasses.replace(current, updated=utc_now(), engine=engine)
+        commit(library_dir, manifest)
+    logger.info("library %s served with engine options %s", library_dir, engine or "(defaults)")
+    return manifest
+
+
 def info(library_dir: str | Path) -> Manifest:
     """The manifest (extractor, timestamps, one record per entry) without reading any array."""
     return read_manifest(Path(library_dir))
@@ -285,13 +305,13 @@ def _write(
                     "to replace it, or add to it with `catalign library add`"
                 )
             records: dict[str, EntryRecord] = {}
-            created = now
+            created, engine = now, {}
         else:
             current = read_manifest(library_dir)
             _check_fingerprint(current, extractor.fingerprint, library_dir)
             _check_new_ids(current, jobs, replace, library_dir)
             records = dict(current.entries)
-            created = current.created
+            created, engine = current.created, current.engine
         try:
             bar = tqdm(
                 jobs,
@@ -311,6 +331,7 @@ def _write(
                 created=created,
                 updated=now,
                 entries=records,
+                engine=engine,
             )
             commit(library_dir, manifest)
         except Exception:

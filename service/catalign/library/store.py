@@ -114,6 +114,10 @@ class Manifest:
     updated: str
     entries: dict[str, EntryRecord] = field(default_factory=dict)
     format_version: int = FORMAT_VERSION
+    engine: dict[str, Any] = field(default_factory=dict)
+    """Engine options the library is served with, over the defaults and under the service's
+    own (:func:`~catalign.registration.config.served_config`); ``catalign library configure``
+    sets them. Checked when a server applies them, so a bad one can still be cleared."""
 
     @property
     def ids(self) -> list[str]:
@@ -126,6 +130,7 @@ class Manifest:
             "created": self.created,
             "updated": self.updated,
             "entries": {i: self.entries[i].to_json() for i in self.ids},
+            "engine": self.engine,
         }
 
     def to_bytes(self) -> bytes:
@@ -163,6 +168,7 @@ class Manifest:
                 created=_typed(raw["created"], str),
                 updated=_typed(raw["updated"], str),
                 entries=entries,
+                engine=_typed(raw.get("engine", {}), dict),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise LibraryCorruptError(

@@ -12,7 +12,7 @@ refused, so a typo in ``CATALIGN_ENGINE__<FIELD>`` or a benchmark's ``name=value
 from __future__ import annotations
 
 import inspect
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -123,8 +123,8 @@ class EngineConfig(BaseModel):
 def parse_options(options: Iterable[str], base: EngineConfig | None = None) -> EngineConfig:
     """``base`` (the defaults when None) with the fields named in ``name=value`` options
     replaced (``none`` for None, numbers as numbers): what the CLI's ``--engine`` and
-    ``bench/tradeoff.py`` take. An unknown field or a bad value raises :class:`ConfigError`
-    saying which."""
+    ``bench/tradeoff.py`` take. The fields counted as set are ``base``'s and the options'. An
+    unknown field or a bad value raises :class:`ConfigError` saying which."""
     fields: dict[str, Any] = {}
     for option in options:
         name, equals, value = (part.strip() for part in option.partition("="))
@@ -138,8 +138,22 @@ def parse_options(options: Iterable[str], base: EngineConfig | None = None) -> E
         except ValueError:
             raise ConfigError(f"engine option {option!r}: {value!r} is not a number") from None
         fields[name] = int(number) if number.is_integer() else number
+    return _validated((base or EngineConfig()).model_dump(exclude_unset=True) | fields)
+
+
+def served_config(service: EngineConfig, library: Mapping[str, Any]) -> EngineConfig:
+    """The options a server runs a library with: the library's own (its manifest's
+    ``engine``), overridden by the fields the service sets (``CATALIGN_ENGINE__*``, then
+    ``--engine``); the defaults for the rest. A bad library option raises
+    :class:`ConfigError` saying which."""
+    return _validated(dict(library) | service.model_dump(exclude_unset=True))
+
+
+def _validated(fields: dict[str, Any]) -> EngineConfig:
+    """``fields`` as a configuration (the others at their defaults, and not counted as set);
+    :class:`ConfigError` naming the first unknown field or bad value."""
     try:
-        return EngineConfig.model_validate((base or EngineConfig()).model_dump() | fields)
+        return EngineConfig.model_validate(fields)
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(map(str, first["loc"])) or "engine"
