@@ -37,12 +37,7 @@ turns it into the stages' keyword arguments, and the stages keep their own per-m
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
-from functools import cached_property
-from typing import TypeVar
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -54,16 +49,17 @@ from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
 from catalign.registration.answers import best_other, distinct
-from catalign.registration.base import Alternative, Orientation, RegistrationResult
-from catalign.registration.category_fit import CategoryFitter, supported
+from catalign.registration.base import Alternative, RegistrationResult
+from catalign.registration.category_fit import CategoryFitter
 from catalign.registration.cleanup import detached_mask
 from catalign.registration.confidence import Evidence
 from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.describe import QueryView, describe, rotations_of, turn_of
+from catalign.registration.describe import describe, rotations_of
 from catalign.registration.hypothesise import Hypothesiser
-from catalign.registration.match import Matcher, probe_rows
+from catalign.registration.match import Matcher
 from catalign.registration.orient import orient
 from catalign.registration.refine import Fit, Refiner
+from catalign.registration.search import Search, StageClock, query_searches
 from catalign.registration.shortlist import shortlist
 from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
@@ -71,9 +67,7 @@ from catalign.registration.validation import (
     CheckedCloud,
     validate_cloud,
 )
-from catalign.registration.verify import QueryChecks, Scored, Verifier, best_per_model
-
-T = TypeVar("T")
+from catalign.registration.verify import Scored, Verifier, best_per_model
 
 
 class Engine:
@@ -132,7 +126,7 @@ class Engine:
         models: a cancelled or expired one stops the work with
         :class:`~catalign.errors.DeadlineExceededError`.
         """
-        config, clock = self.config, _Clock(deadline)
+        config, clock = self.config, StageClock(deadline)
         voxel = self.extractor.voxel_size
         # Validate the cloud (and bound every later step's work).
         with clock("validate"):
@@ -168,7 +162,7 @@ class Engine:
                 voxels=cloud.voxels,
                 pass_voxels=config.pass_voxels,
             )
-            searches = _searches(
+            searches = query_searches(
                 oriented.orientations, views, config.probe_points, seed, support_radius=2 * voxel
             )
 
@@ -225,7 +219,7 @@ class Engine:
         return replace(result, orientations=tuple(oriented.orientations))
 
     def _search(
-        self, search: _Search, k: int | None, estimate_scale: bool, seed: int, clock: _Clock
+        self, search: Search, k: int | None, estimate_scale: bool, seed: int, clock: StageClock
     ) -> list[Scored]:
         """The verified poses of the query under one orientation, best first; ``search``
         records its shortlist and its verification checks."""
@@ -270,21 +264,21 @@ class Engine:
             ranked.sort(key=lambda item: -item.score)
             return [self._weighed(search, item) for item in ranked]
 
-    def _weighed(self, search: _Search, item: Scored) -> Scored:
+    def _weighed(self, search: Search, item: Scored) -> Scored:
         """A verified pose found under ``search``'s orientation, its score weighed by the
         belief in that orientation's up (verification alone prefers an upside-down chair too
         often)."""
         belief = search.orientation.belief**self.config.up_belief_power
         return Scored(item.hypothesis, item.score * belief)
 
-    def _refined(self, search: _Search, item: Scored) -> Scored:
+    def _refined(self, search: Search, item: Scored) -> Scored:
         """``item``'s pose refined by ICP onto its model and scored again."""
         pose = self.refiner.refine(item.hypothesis, search.keypoints)
         return self._weighed(search, self.verifier.score(pose, search.checks))
 
     def _finish(
         self,
-        search: _Search,
+        search: Search,
         item: Scored,
         tried: list[Scored],
         estimate_scale: bool,
@@ -381,14 +375,14 @@ class _Finished:
     """An answer made final: where it was found, its pose and score, its fit, evidence and
     confidence."""
 
-    search: _Search
+    search: Search
     item: Scored
     fit: Fit
     evidence: Evidence
     confidence: float | None
 
 
-def _scored(pair: tuple[_Search, Scored]) -> Scored:
+def _scored(pair: tuple[Search, Scored]) -> Scored:
     return pair[1]
 
 
@@ -398,71 +392,3 @@ def _spanned(model: LibraryEntry, pose: np.ndarray, keypoints: np.ndarray) -> fl
     local = transform(keypoints, np.linalg.inv(pose))
     low, high = np.percentile(local, [2.0, 98.0], axis=0)
     return float(np.min((high - low) / np.maximum(model.size, 1e-6)))
-
-
-@dataclass(eq=False)
-class _Search:
-    """The query under one orientation: its views (one per heading), the key points and probe
-    rows that verification uses, and, once searched, its shortlist and checks. Its ``solid``
-    key points are those with two neighbours within ``support_radius`` (metres)."""
-
-    orientation: Orientation
-    views: list[QueryView]
-    probes: np.ndarray
-    support_radius: float
-    candidates: list[str] = field(default_factory=list)
-    checks: QueryChecks | None = None
-
-    @property
-    def keypoints(self) -> np.ndarray:
-        return self.views[0].keypoints
-
-    @cached_property
-    def solid(self) -> np.ndarray:
-        """The key points that count in the observed extent (stray points would stretch it)."""
-        return supported(self.keypoints, self.support_radius)
-
-    @cached_property
-    def turn(self) -> np.ndarray | None:
-        return turn_of(self.orientation)
-
-
-def _searches(
-    orientations: list[Orientation],
-    views: list[QueryView],
-    probe_points: int,
-    seed: int,
-    *,
-    support_radius: float,
-) -> list[_Search]:
-    """``views`` (in the order of the orientations' rotations) split by orientation."""
-    searches, first = [], 0
-    for orientation in orientations:
-        mine = views[first : first + len(orientation.headings)]
-        first += len(orientation.headings)
-        probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
-        searches.append(_Search(orientation, mine, probes, support_radius))
-    return searches
-
-
-class _Clock:
-    """The steps' timings (milliseconds; a step may add to an earlier step's name) and the
-    deadline, checked before every step and between the items of a loop."""
-
-    def __init__(self, deadline: Deadline | None) -> None:
-        self.timings: dict[str, float] = {}
-        self.check: Callable[[], None] = (lambda: None) if deadline is None else deadline.check
-
-    @contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        self.check()
-        started = time.perf_counter()
-        yield
-        elapsed = (time.perf_counter() - started) * 1e3
-        self.timings[stage] = self.timings.get(stage, 0.0) + elapsed
-
-    def each(self, items: Iterable[T]) -> Iterator[T]:
-        """``items``, with the deadline checked before each."""
-        for item in items:
-            self.check()
-            yield item
