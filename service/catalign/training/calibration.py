@@ -2,8 +2,9 @@
 
 The validation chairs stay untouched for measuring the calibration. The training chairs play
 both of the evaluation's settings: *same* (the library holds every training chair, so the
-observed one's CAD is in it) and *cross* (the chairs split in two halves by sorted id, each
-half's views registered against a library of the other half). Views come upright with ``up``
+observed one's CAD is in it) and *cross* (the chairs split in :data:`CROSS_FOLDS` folds by
+sorted id, each fold's views registered against a library of the other folds: 46 of the 61
+training chairs, near the 61 the evaluation's *cross* library holds). Views come upright with ``up``
 given and in any rotation without it, so the regression learns what an estimated up costs.
 Every answer, the winner and its alternatives, is one sample: its
 :class:`~catalign.registration.confidence.Evidence` and whether it is right (within 10 degrees
@@ -45,6 +46,9 @@ from catalign.registration.indexed import IndexedRegistrar
 # The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
 CALIBRATION_SEED = 2_000
 SAMPLES_FILE = "samples.npz"
+# Folds of the *cross* setting: the more, the closer each library's size to the evaluation's
+# (a larger library offers more near misses, so an answer is less often right).
+CROSS_FOLDS = 4
 
 
 @dataclass(frozen=True)
@@ -147,9 +151,10 @@ def collect(
 ) -> Samples:
     """Register views of ``shapes`` in both settings and every pose mode; label the answers."""
     ids = sorted(shapes)
-    halves = (ids[0::2], ids[1::2])
-    # (library ids, observed ids, setting): same, then each half against the other.
-    plans = [(ids, ids, "same"), (halves[1], halves[0], "cross"), (halves[0], halves[1], "cross")]
+    folds = [ids[k::CROSS_FOLDS] for k in range(CROSS_FOLDS)]
+    # (library ids, observed ids, setting): same, then each fold against the others.
+    plans = [(ids, ids, "same")]
+    plans += [([i for i in ids if i not in fold], fold, "cross") for fold in folds if fold]
     frames = frames_of(shapes)
     samples = Samples()
     for library_ids, observed_ids, setting in plans:
