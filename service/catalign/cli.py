@@ -9,13 +9,16 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from catalign.cli_support import EngineOptions, exit_on_error
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
+
+if TYPE_CHECKING:
+    from catalign.registration.config import EngineConfig
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(library_app, name="library")
@@ -380,7 +383,7 @@ def serve(
         if engine:  # over the CATALIGN_ENGINE__* variables, field by field
             merged = parse_options(engine, base=settings.engine)
             settings = settings.model_copy(update={"engine": merged})
-        _check_serve_paths(settings.model_dir, settings.library)
+        _check_serve_paths(settings.model_dir, settings.library, settings.engine)
     logging.getLogger().setLevel(settings.log_level.upper())
     limit_malloc_arenas(2)
     uvicorn.run(
@@ -393,10 +396,11 @@ def serve(
     )
 
 
-def _check_serve_paths(model_dir: Path, library: Path) -> None:
-    """Fail in one sentence before start-up when the weights or the library are missing."""
-    from catalign.errors import ConfigError
+def _check_serve_paths(model_dir: Path, library: Path, engine: EngineConfig) -> None:
+    """Fail in one sentence before start-up when the weights or the library are missing, or
+    when the library's engine options are not valid ones."""
     from catalign.library.index import info
+    from catalign.registration.config import served_config
     from catalign.training.checkpoint import CARD_FILE, WEIGHTS_FILE
 
     if not (model_dir / WEIGHTS_FILE).is_file() or not (model_dir / CARD_FILE).is_file():
@@ -404,4 +408,10 @@ def _check_serve_paths(model_dir: Path, library: Path) -> None:
             f"no trained weights in {model_dir} (expected {WEIGHTS_FILE} and {CARD_FILE}); "
             "pass --model-dir or train one with `catalign train`"
         )
-    info(library)
+    try:
+        served_config(engine, info(library).engine)
+    except ConfigError as error:
+        raise ConfigError(
+            f"the library {library} sets {error}; set its options again with "
+            f"`catalign library configure {library} --clear [--engine FIELD=VALUE ...]`"
+        ) from None

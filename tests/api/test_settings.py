@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -122,6 +123,19 @@ def test_a_librarys_engine_options_apply_under_the_services(
     assert engine["match_points"] == EngineConfig().match_points
     # the worker processes run with them too: no alternatives
     assert result.model_id == "proc-0001" and len(result.alternatives) == 0
+
+
+def test_serve_refuses_a_library_whose_engine_option_is_bad_in_one_sentence(
+    library_copy: Path,
+) -> None:
+    manifest = library_copy / "manifest.json"
+    raw = json.loads(manifest.read_text())
+    raw["engine"] = {"top_k": 0}  # edited by hand: `catalign library configure` refuses it
+    manifest.write_text(json.dumps(raw))
+    result = CliRunner().invoke(app, ["serve", "--library", str(library_copy)])
+    assert result.exit_code == 2
+    assert f"the library {library_copy} sets engine option top_k" in result.stderr
+    assert "catalign library configure" in result.stderr and "Traceback" not in result.output
 
 
 def test_the_api_key_comes_from_the_environment_or_a_file(
