@@ -13,15 +13,19 @@ and of each worker: resident memory (RSS), its proportional share (PSS: a page s
 processes counts 1/n in each), and the part of both in maps of the library's entry files. RSS
 counts a shared page in every process that reads it (what private copies would cost), PSS once
 over all. The per-model caches the engine builds for the models a query touches (KD-trees,
-normals, matching subsets) are private to each worker and grow with the models queried.
+normals, matching subsets) are private to each worker and grow with the models queried, up to
+the engine's ``model_cache`` models: ``--caches`` also measures, in a spawned process per
+setting, how much resident memory one engine gains when every model of the library is asked
+for once, with the default bound and without one (``model_cache=none``).
 
     .venv/bin/python bench/memory.py [--library DIR ...] [--size 1000] [--workers 2]
-        [--queries 16] [--cache .cache/bench-libraries] [--out bench/results/memory.md]
+        [--queries 16] [--caches] [--cache .cache/bench-libraries] [--out bench/results/memory.md]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import platform
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -33,6 +37,7 @@ from serve import MODEL_DIR, REQUEST_TIMEOUT_S, UP, ServerProcess, query_cloud
 
 from catalign.features.extractor import LearnedExtractor
 from catalign.library.index import build_procedural, load
+from catalign.registration.config import EngineConfig
 from catalign_client import Client
 
 RESULTS = Path(__file__).parent / "results" / "memory.md"
@@ -109,6 +114,42 @@ def measure(library_dir: Path, workers: int, queries: int) -> list[tuple[str, Us
         server.stop()
 
 
+def cache_growth(library_dir: Path, model_cache: int | None) -> tuple[int, int]:
+    """Resident bytes an engine gains when every model's matching subset and ICP surface is
+    asked for once (run in a spawned process: a fresh heap), and the models it keeps."""
+    from catalign.registration.engine import Engine
+
+    extractor = LearnedExtractor(MODEL_DIR)
+    engine = Engine(
+        extractor,
+        load(library_dir, extractor.fingerprint),
+        config=EngineConfig(model_cache=model_cache),
+    )
+    before = psutil.Process().memory_info().rss
+    for model_id in engine.library.ids:
+        engine.matcher.matchable(model_id)
+        engine.refiner.surface(model_id)
+    return psutil.Process().memory_info().rss - before, len(engine.refiner._surfaces)
+
+
+def cache_table(library_dir: Path) -> str:
+    lines = [
+        "",
+        f"One engine on {library_dir.name}, every model asked for once (matching subset, ICP "
+        "surface), in a spawned process per setting:",
+        "",
+        "| model_cache | models kept | resident memory gained MiB |",
+        "|---|---|---|",
+    ]
+    context = multiprocessing.get_context("spawn")
+    for capacity in (EngineConfig().model_cache, None):
+        with context.Pool(1) as pool:
+            gained, kept = pool.apply(cache_growth, (library_dir, capacity))
+        name = "none" if capacity is None else f"{capacity} (default)"
+        lines.append(f"| {name} | {kept} | {gained / MIB:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def table(
     results: list[tuple[Path, float, int, list[tuple[str, Usage]]]], args: argparse.Namespace
 ) -> str:
@@ -119,7 +160,9 @@ def table(
         "every process, PSS divides it among them; *library* is the part in maps of the "
         "library's entry files. Command: `python bench/memory.py "
         + " ".join(f"--library {p}" for p, *_ in results)
-        + f" --workers {args.workers} --queries {args.queries}`.",
+        + f" --workers {args.workers} --queries {args.queries}"
+        + (" --caches" if args.caches else "")
+        + "`.",
         "",
         "| library | arrays viewed in place | entry files | process | RSS MiB | PSS MiB "
         "| library RSS MiB | library PSS MiB |",
@@ -141,6 +184,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=1000)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--queries", type=int, default=16)
+    parser.add_argument("--caches", action="store_true", help="Also measure the model caches.")
     parser.add_argument("--cache", type=Path, default=Path(".cache/bench-libraries"))
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -157,7 +201,10 @@ def main() -> None:
     for library_dir in libraries:
         share, disk = viewed_share(library_dir, fingerprint)
         results.append((library_dir, share, disk, measure(library_dir, args.workers, args.queries)))
-    publish(table(results, args), args.out)
+    text = table(results, args)
+    if args.caches:
+        text += cache_table(libraries[-1])
+    publish(text, args.out)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ DEFAULTS = {
     "exact_fitness": 0.9,
     "fine_cells": 4,
     "pass_voxels": 32_000,
+    "model_cache": 256,
 }
 
 

@@ -118,6 +118,10 @@ class EngineConfig(BaseModel):
     pass_voxels: int = Field(default=32_000, ge=1)
     """Query voxels, over all headings, that one forward pass may describe (bounds its
     memory)."""
+    model_cache: int | None = Field(default=256, ge=1)
+    """Models whose pieces each stage keeps once computed (matching subset, surface check, ICP
+    surface: about 1.1 MB a model), the least recently used dropped first (None: every model
+    asked about; bounds a worker's memory on a large library)."""
 
 
 def parse_options(options: Iterable[str], base: EngineConfig | None = None) -> EngineConfig:

@@ -24,6 +24,7 @@ import numpy as np
 
 from catalign.library.index import Library
 from catalign.registration.alignment import mutual_count, mutual_nearest
+from catalign.registration.cache import ModelCache
 from catalign.registration.describe import QueryView
 from catalign.registration.gravity import yaw_ransac
 
@@ -89,7 +90,7 @@ def model_subset(
 @dataclass(eq=False)
 class Matcher:
     """Matches the query against ``library`` models, with each model's :class:`Matchable`
-    cached.
+    cached (``model_cache`` models at most).
 
     ``distance`` is the inlier distance (metres) of the two-point search that ranks headings
     with ``up``; ``heading_draws`` the pairs it draws per model; ``keep_headings`` how many
@@ -104,16 +105,18 @@ class Matcher:
     heading_draws: int
     match_points: int | None
     model_points: int | None
-    _matchable: dict[str, Matchable] = field(default_factory=dict, init=False, repr=False)
+    model_cache: int | None = None
+    _matchable: ModelCache[Matchable] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._matchable = ModelCache(self.model_cache)
 
     def matchable(self, model_id: str) -> Matchable:
         """The model's key points that take part in matching (cached)."""
-        if model_id not in self._matchable:
-            entry = self.library[model_id]
-            self._matchable[model_id] = model_subset(
-                entry.keypoints, entry.features, self.model_points
-            )
-        return self._matchable[model_id]
+        entry = self.library[model_id]
+        return self._matchable.get(
+            model_id, lambda: model_subset(entry.keypoints, entry.features, self.model_points)
+        )
 
     def choose_headings(
         self,

@@ -22,6 +22,7 @@ import small_gicp
 
 from catalign.geometry.se3 import invert, split_scale
 from catalign.library.index import Library
+from catalign.registration.cache import ModelCache
 from catalign.registration.hypothesise import Hypothesis
 
 # ICP distances, in multiples of the ICP distance: coarse first, then fine.
@@ -65,7 +66,11 @@ class Refiner:
     distance: float
     icp_iterations: int
     icp_points: int | None
-    _surfaces: dict[str, _Surface] = field(default_factory=dict, init=False, repr=False)
+    model_cache: int | None = None
+    _surfaces: ModelCache[_Surface] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._surfaces = ModelCache(self.model_cache)
 
     def refine(self, hypothesis: Hypothesis, query: np.ndarray) -> Hypothesis:
         """The hypothesis with its pose refined by ICP onto the query points (its scale, if
@@ -118,12 +123,15 @@ class Refiner:
 
     def surface(self, model_id: str) -> _Surface:
         """The model's surface points with normals and KD-tree (cached)."""
-        if model_id not in self._surfaces:
-            cloud = small_gicp.PointCloud(self.library[model_id].points.astype(np.float64))
-            tree = small_gicp.KdTree(cloud, THREADS)
-            small_gicp.estimate_normals(cloud, tree, NORMAL_NEIGHBOURS, THREADS)
-            self._surfaces[model_id] = _Surface(cloud, tree)
-        return self._surfaces[model_id]
+        return self._surfaces.get(model_id, lambda: _surface(self.library[model_id].points))
+
+
+def _surface(points: np.ndarray) -> _Surface:
+    """A model's surface points with their normals and KD-tree, for point-to-plane ICP."""
+    cloud = small_gicp.PointCloud(points.astype(np.float64))
+    tree = small_gicp.KdTree(cloud, THREADS)
+    small_gicp.estimate_normals(cloud, tree, NORMAL_NEIGHBOURS, THREADS)
+    return _Surface(cloud, tree)
 
 
 def _translation_scaled(pose: np.ndarray, factor: float) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 from catalign.frames import MODEL_UP
 from catalign.library.index import Library
 from catalign.registration.base import Candidate
+from catalign.registration.cache import ModelCache
 from catalign.registration.hypothesise import Hypothesis
 from catalign.registration.verification import (
     CoverageCheck,
@@ -57,7 +58,8 @@ def surface_sample(points: np.ndarray, count: int) -> np.ndarray:
 
 @dataclass(eq=False)
 class Verifier:
-    """Scores poses against ``library`` models, with each model's checks cached.
+    """Scores poses against ``library`` models, with each model's checks cached
+    (``model_cache`` models at most).
 
     ``distance`` is the inlier distance (metres) of every check, ``coverage_points`` the model
     surface points the coverage check poses, ``verify_top`` the poses (best by the surface
@@ -71,10 +73,12 @@ class Verifier:
     coverage_points: int
     verify_top: int
     cell: float
-    _checks: dict[str, tuple[SurfaceCheck, np.ndarray]] = field(
-        default_factory=dict, init=False, repr=False
-    )
+    model_cache: int | None = None
+    _checks: ModelCache[tuple[SurfaceCheck, np.ndarray]] = field(init=False, repr=False)
     _top_offsets: dict[str, np.ndarray] = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._checks = ModelCache(self.model_cache)
 
     def query_checks(
         self, keypoints: np.ndarray, probes: np.ndarray, turn: np.ndarray | None
@@ -141,13 +145,11 @@ class Verifier:
 
     def _checks_of(self, model_id: str) -> tuple[SurfaceCheck, np.ndarray]:
         """The model's surface check and its sample for the coverage check (cached)."""
-        if model_id not in self._checks:
-            model = self.library[model_id]
-            self._checks[model_id] = (
-                SurfaceCheck(model.grid),
-                surface_sample(model.points, self.coverage_points),
-            )
-        return self._checks[model_id]
+        model = self.library[model_id]
+        return self._checks.get(
+            model_id,
+            lambda: (SurfaceCheck(model.grid), surface_sample(model.points, self.coverage_points)),
+        )
 
 
 def _by_model(hypotheses: list[Hypothesis]) -> list[tuple[str, list[int], np.ndarray]]:
