@@ -82,10 +82,8 @@ def evaluate(
 
     settings = tuple(setting or ("same", "cross"))
     with exit_on_error():
-        check_method(method)  # an unknown name fails before any data is read
         engine_config = None if engine is None else parse_options(engine)
-        if engine_config is not None and method == "fpfh":
-            raise ConfigError("--engine options apply to learned and fpfh-engine, not to fpfh")
+        check_method(method, engine_config)  # fails before any data is read
         for name in settings:
             if name not in ("same", "cross"):
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")

@@ -32,8 +32,6 @@ def _fpfh(model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | 
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.pipeline import FeatureRegistrar
 
-    if engine is not None:
-        raise ConfigError("engine options apply to learned and fpfh-engine, not to fpfh")
     voxel = 0.025
     extractor = FPFHExtractor(voxel)
     return FeatureRegistrar(extractor, name="fpfh", ransac_distance=1.5 * voxel, icp_distance=voxel)
@@ -65,10 +63,13 @@ METHODS: dict[str, Callable[[Path | None, np.ndarray | None, EngineConfig | None
 }
 
 
-def check_method(name: str) -> None:
-    """Raise :class:`ConfigError` listing the known methods when ``name`` is not one."""
+def check_method(name: str, engine: EngineConfig | None = None) -> None:
+    """Raise :class:`ConfigError` listing the known methods when ``name`` is not one, or when
+    ``engine`` options are given to the classic baseline, which has no engine."""
     if name not in METHODS:
         raise ConfigError(f"unknown method {name!r}; known methods: {', '.join(sorted(METHODS))}")
+    if engine is not None and name == "fpfh":
+        raise ConfigError("--engine options apply to learned and fpfh-engine, not to fpfh")
 
 
 def build_registrar(
@@ -80,5 +81,5 @@ def build_registrar(
     """The registrar called ``name``; ``model_dir`` holds the learned method's weights,
     ``up`` is the world direction of the chair's up axis when known and ``engine`` the
     engine methods' configuration."""
-    check_method(name)
+    check_method(name, engine)
     return METHODS[name](model_dir, up, engine)
