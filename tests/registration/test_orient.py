@@ -17,10 +17,17 @@ VOXEL = 0.025
 
 
 class FixedProposer:
-    """Proposes the given ups, and the given headings under every up."""
+    """Proposes the given ups, and the given headings (each with its score, 0.5 when not
+    given) under every up."""
 
-    def __init__(self, ups: list[np.ndarray], headings: list[float]) -> None:
+    def __init__(
+        self,
+        ups: list[np.ndarray],
+        headings: list[float],
+        heading_scores: list[float] | None = None,
+    ) -> None:
         self._ups, self._headings = ups, headings
+        self._scores = heading_scores or [0.5] * len(headings)
         self.levelled: list[np.ndarray] = []
 
     def ups(self, points: np.ndarray, count: int) -> list[Proposal]:
@@ -28,7 +35,8 @@ class FixedProposer:
 
     def headings(self, levelled: list[np.ndarray], count: int) -> list[list[Proposal]]:
         self.levelled = levelled
-        return [[Proposal(h, 0.5) for h in self._headings[:count]] for _ in levelled]
+        found = list(zip(self._headings, self._scores, strict=True))[:count]
+        return [[Proposal(h, score) for h, score in found] for _ in levelled]
 
 
 def tilted(direction: np.ndarray, degrees: float) -> np.ndarray:
@@ -86,6 +94,26 @@ def test_without_up_the_floor_under_a_proposal_becomes_the_first_up(box_chair: S
     # headings are proposed on the levelled cloud less its floor, two per up
     assert first.headings == (0.3, 2.0) and first.headings_proposed
     assert all(len(cloud) == (~oriented.floor).sum() for cloud in proposer.levelled)
+
+
+@pytest.mark.parametrize(
+    ("scores", "described"), [([0.96, 0.03], (0.3,)), ([0.6, 0.35], (0.3, 2.0))]
+)
+def test_a_second_heading_is_described_only_while_the_first_is_unsure(
+    box_chair: Shape, scores: list[float], described: tuple[float, ...]
+) -> None:
+    proposer = FixedProposer([WORLD_UP], headings=[0.3, 2.0], heading_scores=scores)
+    oriented = orient(
+        view(box_chair),
+        WORLD_UP,
+        proposer,
+        headings=8,
+        up_proposals=3,
+        heading_proposals=2,
+        voxel=VOXEL,
+        heading_mass=0.95,
+    )
+    assert oriented.orientations[0].headings == described
 
 
 @pytest.mark.parametrize("heading", [0.0, 1.2, -2.5])

@@ -12,7 +12,7 @@ from catalign.geometry.se3 import axis_angle, invert, make_pose, rotation_error_
 from catalign.registration.alignment import point_cloud
 from catalign.registration.describe import QueryView
 from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.refine import ICP_SCHEDULE, Refiner
+from catalign.registration.refine import ICP_SCHEDULE, Refiner, may_be_within
 
 reg = o3d.pipelines.registration
 POSE = make_pose(axis_angle(np.array([0.1, 1.0, 0.2]), 0.9), np.array([0.3, -0.1, 1.1]))
@@ -79,14 +79,16 @@ def test_icp_lands_where_open3d_icp_lands(refiner: Refiner, box_chair, seed: int
     assert np.linalg.norm(ours[:3, 3] - reference[:3, 3]) < 0.005
 
 
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(6))
 def test_the_fit_statistics_are_open3ds(refiner: Refiner, box_chair, seed: int) -> None:
     """Fitness, inlier RMSE and inlier count as Open3D's ``evaluate_registration`` gives them,
-    on poses from exact to a few centimetres off."""
+    on poses from exact to a few centimetres off, and (seeds 4, 5) far enough off that the
+    distance grid sets most of the query aside before the KD-tree."""
     rng = np.random.default_rng(seed)
     keypoints = _observe(box_chair.points, POSE)
+    degrees, metres = (3.0 * seed, 0.01 * seed) if seed < 4 else (10.0 * seed, 0.05 * seed)
     off = make_pose(
-        axis_angle(rng.normal(size=3), np.radians(3.0 * seed)), rng.normal(size=3) * 0.01 * seed
+        axis_angle(rng.normal(size=3), np.radians(degrees)), rng.normal(size=3) * metres
     )
     ours = refiner.fit(_hypothesis(off @ POSE, keypoints), keypoints)
     reference = reg.evaluate_registration(
@@ -123,9 +125,19 @@ def test_icp_against_a_scaled_surface_is_icp_against_the_scaled_points(
     assert np.linalg.norm(ours[:3, 3] - POSE[:3, 3]) < 0.005
 
 
-def test_a_subset_of_the_query_refines_as_well(library, box_chair) -> None:
+@pytest.mark.parametrize("coarse_points", [None, 40])
+def test_a_subset_of_the_query_refines_as_well(
+    library, box_chair, coarse_points: int | None
+) -> None:
+    """150 of the query's points, and (40) a coarse pass on every fourth of them."""
     keypoints = _observe(box_chair.points, POSE)
-    few = Refiner(library, distance=DISTANCE, icp_iterations=30, icp_points=150)
+    few = Refiner(
+        library,
+        distance=DISTANCE,
+        icp_iterations=30,
+        icp_points=150,
+        icp_coarse_points=coarse_points,
+    )
     assert len(keypoints) > 300
     refined = few.refine(_hypothesis(NUDGE @ POSE, keypoints), keypoints)
     assert rotation_error_deg(refined.transform[:3, :3], POSE[:3, :3]) < 1.0
@@ -138,3 +150,21 @@ def test_surfaces_are_built_once_with_normals(refiner: Refiner) -> None:
     normals = surface.cloud.normals()[:, :3]
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
     assert np.allclose(surface.cloud.points()[:, :3], refiner.library["chair"].points, atol=1e-6)
+
+
+@pytest.mark.parametrize("distance", [0.01, 0.025, 0.05])
+def test_the_grid_never_rules_out_a_point_within_the_distance(
+    library, box_chair, distance: float
+) -> None:
+    """Against exact nearest distances (a KD-tree) on points scattered in and around the chair,
+    down to a millimetre from the threshold: every point within it may be."""
+    from scipy.spatial import cKDTree
+
+    grid = library["chair"].grid
+    rng = np.random.default_rng(1)
+    surface = box_chair.points[rng.choice(len(box_chair.points), 4000)]
+    points = surface + rng.normal(size=surface.shape) * rng.uniform(0.0, 0.1, (len(surface), 1))
+    exact, _ = cKDTree(library["chair"].points).query(points)
+    flagged = may_be_within(grid, points, distance)
+    assert flagged[exact < distance].all()
+    assert (exact < distance).sum() > 500 and (~flagged).sum() > 500  # both sides are tested

@@ -44,7 +44,6 @@ import numpy as np
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
-from catalign.geometry.distance_grid import CELL_VOXELS
 from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
@@ -102,7 +101,11 @@ class Engine:
         self.matcher = from_config(Matcher, config, library, distance=self.ransac_distance)
         self.hypothesiser = from_config(Hypothesiser, config, distance=self.ransac_distance)
         self.verifier = from_config(
-            Verifier, config, library, distance=self.ransac_distance, cell=CELL_VOXELS * voxel
+            Verifier,
+            config,
+            library,
+            distance=self.ransac_distance,
+            cell=config.coverage_cell * voxel,
         )
         self.refiner = from_config(Refiner, config, library, distance=self.icp_distance)
         self.category_fitter = CategoryFitter(
@@ -147,6 +150,7 @@ class Engine:
                 headings=self.headings,
                 up_proposals=config.up_proposals,
                 heading_proposals=config.heading_proposals,
+                heading_mass=config.heading_mass,
                 voxel=voxel,
             )
             cloud = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)

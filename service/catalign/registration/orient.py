@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from catalign.features.orientation import OrientationProposer
+from catalign.features.orientation import OrientationProposer, Proposal
 from catalign.geometry.sampling import voxel_downsample
 from catalign.registration.base import Orientation
 from catalign.registration.cleanup import cone_planes, floor_mask
@@ -69,10 +69,13 @@ def orient(
     up_proposals: int,
     heading_proposals: int | None,
     voxel: float,
+    heading_mass: float | None = None,
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
-    proposed); ``heading_proposals`` None describes every heading even with a proposer."""
+    proposed); ``heading_proposals`` None describes every heading even with a proposer, and
+    with ``heading_mass`` a further proposal is kept only while the ones before it hold less
+    than that probability mass."""
     given = up is not None
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
@@ -100,7 +103,10 @@ def orient(
     propose = proposer is not None and headings > 1 and heading_proposals is not None
     if propose and ups[0] is not None:
         levelled = [kept @ leveller(u).T for u in ups]
-        proposed = proposer.headings(levelled, heading_proposals)
+        proposed = [
+            _confident(found, heading_mass)
+            for found in proposer.headings(levelled, heading_proposals)
+        ]
         orientations = [
             Orientation(u, given, tuple(float(p.value) for p in found), True, belief)
             for u, found, belief in zip(ups, proposed, beliefs, strict=True)
@@ -112,6 +118,15 @@ def orient(
         ]
     level = float(np.median(points[floor] @ ups[0])) if floor.any() else None
     return Oriented(orientations, floor, level)
+
+
+def _confident(proposals: list[Proposal], mass: float | None) -> list[Proposal]:
+    """The leading ``proposals`` up to the first whose predecessors hold ``mass`` (all of them
+    when None)."""
+    if mass is None:
+        return proposals
+    held = np.cumsum([0.0] + [p.score for p in proposals[:-1]])
+    return [p for p, before in zip(proposals, held, strict=True) if before < mass]
 
 
 def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.ndarray:

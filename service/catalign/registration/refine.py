@@ -11,6 +11,13 @@ built once and cached, where Open3D's ICP builds the target's KD-tree on every c
 (``bench/results/tradeoff-icp.md`` compares the two on the evaluation's cases). A surface scaled
 by ``s`` (a similarity pose, or the category fit's refit at the observed size) is never built:
 the query is scaled by ``1/s`` instead, which is the same alignment.
+
+A KD-tree's nearest-neighbour search costs several times more for a point far from the surface
+than for one on it, and a wrong pose leaves much of the query far: so each ICP pass and each fit
+first reads the query's distances from the model's distance grid (computed with the library),
+and only points the grid places near enough go to the tree. For the fit that filter is exact
+(:func:`may_be_within`); the fine ICP pass drops the points beyond the grid's truncation, three
+times its correspondence distance (:func:`_in_reach`).
 """
 
 from __future__ import annotations
@@ -20,7 +27,8 @@ from dataclasses import KW_ONLY, dataclass, field, replace
 import numpy as np
 import small_gicp
 
-from catalign.geometry.se3 import invert, split_scale
+from catalign.geometry.distance_grid import DistanceGrid
+from catalign.geometry.se3 import invert, split_scale, transform
 from catalign.library.index import Library
 from catalign.registration.cache import ModelCache
 from catalign.registration.hypothesise import Hypothesis
@@ -58,7 +66,7 @@ class Refiner:
 
     ``distance`` is the ICP inlier distance (metres, the fine one); ``icp_iterations`` the
     most Gauss-Newton steps of each pass; ``icp_points`` the query points ICP aligns (a
-    fixed subset; None: all).
+    fixed subset; None: all), of which the coarse pass takes about ``icp_coarse_points``.
     """
 
     library: Library
@@ -66,6 +74,7 @@ class Refiner:
     distance: float
     icp_iterations: int
     icp_points: int | None
+    icp_coarse_points: int | None = None
     model_cache: int | None = None
     _surfaces: ModelCache[_Surface] = field(init=False, repr=False)
 
@@ -86,21 +95,33 @@ class Refiner:
         the origin) from the rigid model -> observation pose ``start``; the refined rigid pose.
         """
         surface = self.surface(model_id)
+        grid = self.library[model_id].grid
         # q = R (s p) + t  <=>  q / s = R p + t / s: align the shrunk query to the surface.
-        source = small_gicp.PointCloud(self._subset(np.asarray(query, np.float64)) / scale)
+        shrunk = self._subset(np.asarray(query, np.float64)) / scale
         current = invert(_translation_scaled(start, 1.0 / scale))
         for factor in ICP_SCHEDULE:
+            reach = factor * self.distance / scale
+            near = _in_reach(grid, self._pass_points(shrunk, factor), current, reach)
+            if len(near) < 3:  # nothing to align: the pose is kept
+                break
             current = small_gicp.align(
                 surface.cloud,
-                source,
+                small_gicp.PointCloud(near),
                 surface.tree,
                 current,
                 registration_type="PLANE_ICP",
-                max_correspondence_distance=factor * self.distance / scale,
+                max_correspondence_distance=reach,
                 num_threads=THREADS,
                 max_iterations=self.icp_iterations,
             ).T_target_source
         return _translation_scaled(invert(np.asarray(current)), scale)
+
+    def _pass_points(self, points: np.ndarray, factor: float) -> np.ndarray:
+        """The ICP's points that the pass at ``factor`` aligns: every n-th, about
+        ``icp_coarse_points``, for the coarse passes; all of them for the fine one."""
+        if factor <= ICP_SCHEDULE[-1] or self.icp_coarse_points is None:
+            return points
+        return points[:: int(np.ceil(len(points) / self.icp_coarse_points))]
 
     def _subset(self, query: np.ndarray) -> np.ndarray:
         """At most ``icp_points`` of the query points, the same for every call."""
@@ -113,17 +134,39 @@ class Refiner:
         """The fit of the query points on the model under the hypothesis's pose."""
         rigid, scale = split_scale(hypothesis.transform)
         local = (np.asarray(query, np.float64) - rigid[:3, 3]) @ rigid[:3, :3] / scale
+        grid = self.library[hypothesis.model_id].grid
+        near = local[may_be_within(grid, local, self.distance / scale)]
         _, squared = self.surface(hypothesis.model_id).tree.batch_nearest_neighbor_search(
-            local, num_threads=THREADS
+            near, num_threads=THREADS
         )
         distances = np.sqrt(np.asarray(squared)) * scale
         inliers = distances[distances < self.distance]
         rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else 0.0
-        return Fit(len(inliers) / max(len(distances), 1), rmse, len(inliers))
+        return Fit(len(inliers) / max(len(local), 1), rmse, len(inliers))
 
     def surface(self, model_id: str) -> _Surface:
         """The model's surface points with normals and KD-tree (cached)."""
         return self._surfaces.get(model_id, lambda: _surface(self.library[model_id].points))
+
+
+def may_be_within(grid: DistanceGrid, points: np.ndarray, distance: float) -> np.ndarray:
+    """Which ``points`` may lie within ``distance`` of the grid's point set: all that do, and
+    some that do not. A distance field is 1-Lipschitz, so each corner a trilinear read mixes
+    differs from the true distance by at most its own distance to the point (a cell diagonal)
+    plus the quantisation: a read beyond ``distance`` by more than that is truly beyond it."""
+    slack = np.sqrt(3.0) * grid.cell + grid.step
+    return grid.distances(points) < distance + slack
+
+
+def _in_reach(grid: DistanceGrid, points: np.ndarray, pose: np.ndarray, reach: float) -> np.ndarray:
+    """The ``points`` an ICP pass with correspondence distance ``reach`` may use from ``pose``
+    (query -> model): for a pass that reaches at most half the grid's truncation (the fine
+    one), those the grid places nearer than the truncation, since the pass would have to move
+    a point more than half the truncation to bring it in; all of them for a pass reaching
+    farther (the coarse one, whose answers changed without its far points)."""
+    if reach > grid.truncation / 2:
+        return points
+    return points[grid.distances(transform(points, pose)) < grid.truncation]
 
 
 def _surface(points: np.ndarray) -> _Surface:
