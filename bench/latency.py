@@ -1,15 +1,17 @@
 """Query latency of the engine against procedural libraries of growing size, FPFH alongside.
 
-A 20k-point partial view of a procedural chair that is not in the library is registered against
-libraries of 10, 50, 200 and 1000 procedural chairs (built once with the shipped weights and
-cached under ``--cache``), with the engine's default shortlist: with ``up`` (described at the
-proposed headings), with ``up`` at every heading (no heading proposals: the baseline of the
-features stage) and without ``up`` (searched under the proposed ups). The FPFH baseline
-(Open3D's recipe, every model tried) runs in the same process on the small libraries, where it
-finishes. Prints a markdown table and writes it to ``bench/results/latency.md``.
+20k-point partial views of procedural chairs that are not in the library (``--queries`` of them:
+a query whose heading proposal is confident is described at one heading, others at two, so one
+view is not typical) are registered against libraries of 10, 50, 200 and 1000 procedural chairs
+(built once with the shipped weights and cached under ``--cache``), with the engine's default
+shortlist: with ``up`` (described at the proposed headings), with ``up`` at every heading (no
+heading proposals: the baseline of the features stage) and without ``up`` (searched under the
+proposed ups). The FPFH baseline (Open3D's recipe, every model tried) runs in the same process
+on the small libraries, where it finishes. Prints a markdown table and writes it to
+``bench/results/latency.md``.
 
-    .venv/bin/python bench/latency.py [--sizes 10 50 200 1000] [--runs 5] [--top-k 10]
-        [--model-dir DIR] [--out FILE]
+    .venv/bin/python bench/latency.py [--sizes 10 50 200 1000] [--runs 5] [--queries 8]
+        [--top-k 10] [--model-dir DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -32,18 +34,22 @@ from catalign.registration.base import LibraryShape
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.registration.methods import build_registrar
+from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "latency.md"
+# The first query view's seed (its chair's and its camera's); the others follow it.
+QUERY_SEED = 5000
 STAGES = ("validate", "orient", "features", "shortlist", "match_ransac", "verify", "icp_score")
 # How each row of the table calls the engine: its configuration and the up it is given.
 MODES = {
     "learned engine, up": ({}, WORLD_UP),
+    "learned engine, up, two headings always": ({"heading_mass": None}, WORLD_UP),
     "learned engine, up, every heading": ({"heading_proposals": None}, WORLD_UP),
     "learned engine, no up": ({}, None),
 }
 
 
-def query_cloud(seed: int = 5000, count: int = 20_000) -> np.ndarray:
+def query_cloud(seed: int = QUERY_SEED, count: int = 20_000) -> np.ndarray:
     """A noisy 640x480 view of a chair outside every library, cut to ``count`` points."""
     rng = np.random.default_rng(seed)
     shape = procedural_shape(seed)
@@ -52,15 +58,20 @@ def query_cloud(seed: int = 5000, count: int = 20_000) -> np.ndarray:
     return subsample(render_view(shape, pose, camera, rng), count, rng)
 
 
-def timed(call, runs: int) -> tuple[list[float], list]:
-    """Wall milliseconds of ``runs`` calls after one warm-up (caches, allocator, lazy imports),
-    and what each call returned."""
-    call()
+def timed(
+    register, queries: list[np.ndarray], runs: int, warm_ups: int
+) -> tuple[list[float], list]:
+    """Wall milliseconds of each ``register(query)`` over ``runs`` passes through the
+    ``queries``, after registering the first ``warm_ups`` of them once (per-model caches,
+    allocator, lazy imports), and what each call returned."""
+    for query in queries[:warm_ups]:
+        register(query)
     times, answers = [], []
     for _ in range(runs):
-        started = time.perf_counter()
-        answers.append(call())
-        times.append((time.perf_counter() - started) * 1e3)
+        for query in queries:
+            started = time.perf_counter()
+            answers.append(register(query))
+            times.append((time.perf_counter() - started) * 1e3)
     return times, answers
 
 
@@ -69,16 +80,17 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 200, 1000])
     parser.add_argument("--fpfh-sizes", type=int, nargs="+", default=[10, 50])
     parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--queries", type=int, default=8, help="distinct query views")
     parser.add_argument("--top-k", type=int, default=EngineConfig().top_k)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cache", type=Path, default=Path(".cache/bench-libraries"))
     parser.add_argument("--model-dir", type=Path, default=None, help="weights (model_store/)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    limit_threads(args.threads, total=args.threads)  # as the server's workers run
 
     extractor = LearnedExtractor(args.model_dir)
-    points = query_cloud()
+    queries = [query_cloud(seed) for seed in range(QUERY_SEED, QUERY_SEED + args.queries)]
     rows, stages = [], []
     for size in args.sizes:
         folder = args.cache / f"{extractor.fingerprint[:12]}-{size}"
@@ -88,23 +100,28 @@ def main() -> None:
         for mode, (options, up) in MODES.items():
             config = EngineConfig(top_k=args.top_k, **options)
             engine = Engine(extractor, library, config=config)
-            ms, answers = timed(lambda e=engine, u=up: e.register(points, up=u, seed=0), args.runs)
+            ms, answers = timed(
+                lambda q, e=engine, u=up: e.register(q, up=u, seed=0),
+                queries,
+                args.runs,
+                warm_ups=len(queries),
+            )
             rows.append((mode, size, ms))
             medians = {k: np.median([a.timings_ms[k] for a in answers]) for k in STAGES}
             stages.append((mode, size, medians))
         if size in args.fpfh_sizes:
             fpfh = build_registrar("fpfh")
             fpfh.prepare([LibraryShape(e.model_id, e.points) for e in library])
-            ms, _ = timed(lambda f=fpfh: f.register(points, seed=0), max(1, args.runs // 2))
+            ms, _ = timed(lambda q, f=fpfh: f.register(q, seed=0), queries, 1, warm_ups=1)
             rows.append(("FPFH baseline", size, ms))
 
     lines = [
         "# Query latency (20k-point query)",
         "",
-        f"{platform.machine()}, {torch.get_num_threads()} torch threads, top_k={args.top_k}, "
-        f"weights {extractor.fingerprint[:12]}, headings={extractor.headings}, "
-        f"{args.runs} timed runs after one warm-up "
-        f"(FPFH: {max(1, args.runs // 2)}); load average {load_average():.2f}.",
+        f"{platform.machine()}, {torch.get_num_threads()} torch threads (BLAS 1), "
+        f"top_k={args.top_k}, weights {extractor.fingerprint[:12]}, headings={extractor.headings}, "
+        f"{args.queries} query views, each timed {args.runs} times after one warm-up "
+        f"(FPFH: once, after one query); load average {load_average():.2f}.",
         "",
         "| method | library size | median ms | p95 ms |",
         "|---|---|---|---|",

@@ -38,6 +38,7 @@ from catalign.registration.base import LibraryShape
 from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
 RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
@@ -70,7 +71,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    limit_threads(args.threads, total=args.threads)  # as the server's workers run
 
     configs = {text: parse_config(text) for text in args.configs}  # a typo fails here, early
     chairs = SharedChairs(args.chairs_dir)

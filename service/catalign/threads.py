@@ -5,8 +5,11 @@ Left alone, every one of them starts a pool as large as the machine, so N worker
 N times as many threads as cores and slow each other down. :func:`limit_threads` runs once in
 each worker thread: OpenMP's limit is per calling thread, torch's and the BLAS libraries' are
 process-wide (the same value in every worker), and Open3D's TBB limit counts every thread of the
-process, so it is given the workers' total. :func:`limit_malloc_arenas` keeps glibc from giving
-every thread that allocates (workers, the body decoders) a heap of its own.
+process, so it is given the workers' total. BLAS gets one thread whatever the share: the
+engine's products are small, and OpenBLAS's idle threads spin on the core that torch's next
+parallel loop needs (two BLAS threads measured 276 against 204 ms at the 95th percentile of
+a query, ``bench/latency.py``'s views, the median 0.98x). :func:`limit_malloc_arenas` keeps
+glibc from giving every thread that allocates (workers, the body decoders) a heap of its own.
 """
 
 from __future__ import annotations
@@ -86,8 +89,9 @@ def limit_malloc_arenas(arenas: int) -> bool:
 
 
 def limit_threads(threads: int, total: int, niceness: int = 0) -> None:
-    """Use ``threads`` threads in this worker (torch, OpenMP, BLAS) and ``total`` in Open3D, and
-    run this thread ``niceness`` steps below the process's priority."""
+    """Use ``threads`` threads in this worker (torch, OpenMP), one for BLAS (module docstring)
+    and ``total`` in Open3D, and run this thread ``niceness`` steps below the process's
+    priority."""
     if niceness:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
     import open3d
@@ -95,5 +99,7 @@ def limit_threads(threads: int, total: int, niceness: int = 0) -> None:
     from threadpoolctl import threadpool_limits
 
     torch.set_num_threads(threads)
-    threadpool_limits(limits=threads)  # applied now and kept (not used as a context manager)
+    # Applied now and kept (not used as context managers).
+    threadpool_limits(limits=threads, user_api="openmp")
+    threadpool_limits(limits=1, user_api="blas")
     open3d.utility.set_max_threads(total)

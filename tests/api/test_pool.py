@@ -143,16 +143,19 @@ def test_workers_run_with_the_thread_limits_of_their_share() -> None:
     import torch
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    def limits() -> tuple[int, list[int], int]:
-        counts = [pool["num_threads"] for pool in threadpool_info()]
+    def limits() -> tuple[int, dict[str, set[int]], int]:
+        counts: dict[str, set[int]] = {}
+        for pool in threadpool_info():
+            counts.setdefault(pool["user_api"], set()).add(pool["num_threads"])
         return torch.get_num_threads(), counts, open3d.utility.get_max_threads()
 
     async def scenario() -> None:
         pool = WorkPool(
-            workers=2, queue=0, metrics=Metrics(), initializer=partial(limit_threads, 1, total=2)
+            workers=2, queue=0, metrics=Metrics(), initializer=partial(limit_threads, 2, total=2)
         )
         torch_threads, counts, open3d_threads = await pool.run(limits)
-        assert torch_threads == 1 and counts and set(counts) == {1}
+        assert torch_threads == 2 and counts["blas"] == {1}  # BLAS: one thread whatever the share
+        assert counts.get("openmp", {2}) == {2}
         assert open3d_threads == 2
         pool.shutdown()
 
