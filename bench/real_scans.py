@@ -2,10 +2,17 @@
 
 There is no CAD pose for them (``../shared/data/real_scans/README.md``), so the table reports
 what can be judged: the model chosen, how far the answer tilts the chair from standing upright
-(+Z), the fit (fitness and inlier ratio over the points kept) and the points set aside. Prints
-a markdown table and writes it to ``bench/results/real_scans.md``.
+(+Z), the fit (fitness and inlier ratio over the points kept) and the points set aside.
+
+A second table asks whether the answer moves with the sensor: each scan is also registered after
+``--motions`` random rigid motions (20 to 60 degrees about a random axis, a shift of about a
+metre; ``up`` moved with it), under each engine setting of ``--configs`` (``name=value`` fields
+joined by commas, ``default`` for none changed), and counted are the answers with the same
+model, and those whose pose is the moved pose of the unmoved answer within 2 degrees and 2 cm.
+Prints the tables and writes them to ``bench/results/real_scans.md``.
 
     .venv/bin/python bench/real_scans.py [--scans DIR] [--model-dir DIR] [--library DIR]
+        [--motions 8] [--configs default heading_mass=0.95]
 """
 
 from __future__ import annotations
@@ -14,15 +21,17 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-import torch
 from _report import load_average, publish
 
 from catalign.data.shapes import default_chairs_root
 from catalign.features.extractor import LearnedExtractor
 from catalign.frames import MODEL_UP
+from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
 from catalign.library.index import load
 from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.config import parse_options
 from catalign.registration.engine import Engine
+from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "real_scans.md"
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -33,15 +42,52 @@ def tilt_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((rotation @ MODEL_UP) @ WORLD_UP, -1.0, 1.0))))
 
 
+def motions(count: int, seed: int = 11) -> list[np.ndarray]:
+    """``count`` random rigid motions a hand-held sensor could add."""
+    rng = np.random.default_rng(seed)
+    return [
+        make_pose(
+            axis_angle(rng.normal(size=3), np.radians(rng.uniform(20, 60))), rng.normal(size=3)
+        )
+        for _ in range(count)
+    ]
+
+
+def stability(engine: Engine, scans: dict[str, np.ndarray], moves: list[np.ndarray]) -> str:
+    """Answers after each motion with the unmoved answer's model, and those whose pose is
+    also its moved pose within 2 degrees and 2 cm, as a table row's cells."""
+    same = agree = 0
+    for points in scans.values():
+        before = engine.register(points, up=WORLD_UP, seed=0)
+        for move in moves:
+            after = engine.register(
+                points @ move[:3, :3].T + move[:3, 3], up=move[:3, :3] @ WORLD_UP, seed=0
+            )
+            expected = move @ before.pose
+            same += after.model_id == before.model_id
+            agree += (
+                after.model_id == before.model_id
+                and rotation_error_deg(after.pose[:3, :3], expected[:3, :3]) <= 2.0
+                and np.linalg.norm(after.pose[:3, 3] - expected[:3, 3]) <= 0.02
+            )
+    trials = len(scans) * len(moves)
+    return f"{trials} | {100 * same / trials:.0f} % | {100 * agree / trials:.0f} %"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scans", type=Path, default=default_chairs_root().parent / "real_scans")
     parser.add_argument("--model-dir", type=Path, default=None)
     parser.add_argument("--library", type=Path, default=DEFAULT_MODEL_DIR / "library")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--motions", type=int, default=8)
+    parser.add_argument("--configs", nargs="+", default=["default"])
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    limit_threads(args.threads, total=args.threads)  # as the server's workers run
+    configs = {
+        text: parse_options([] if text == "default" else text.split(",")) for text in args.configs
+    }
     files = sorted(args.scans.glob("*.npy"))
     if not files:
         raise SystemExit(f"no scans in {args.scans}")
@@ -74,7 +120,16 @@ def main() -> None:
         "",
         f"Upright within 10 degrees: {upright['given']} of {len(files)} with `up`, "
         f"{upright['estimated']} of {len(files)} without.",
+        "",
+        f"Under {args.motions} random rigid motions of each scan, `up` given and moved along:",
+        "",
+        "| engine options | answers | same model | same model and pose (2 deg, 2 cm) |",
+        "|---|---|---|---|",
     ]
+    scans = {path.stem: np.load(path).astype(np.float64) for path in files}
+    for text, config in configs.items():
+        moved = Engine(extractor, engine.library, config=config)
+        lines.append(f"| {text} | {stability(moved, scans, motions(args.motions))} |")
     publish("\n".join(lines) + "\n", args.out)
 
 
