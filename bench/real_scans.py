@@ -26,7 +26,7 @@ from _report import load_average, publish
 from catalign.data.shapes import default_chairs_root
 from catalign.features.extractor import LearnedExtractor
 from catalign.frames import MODEL_UP
-from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
+from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
 from catalign.library.index import load
 from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.config import parse_options
@@ -60,9 +60,7 @@ def stability(engine: Engine, scans: dict[str, np.ndarray], moves: list[np.ndarr
     for points in scans.values():
         before = engine.register(points, up=WORLD_UP, seed=0)
         for move in moves:
-            after = engine.register(
-                points @ move[:3, :3].T + move[:3, 3], up=move[:3, :3] @ WORLD_UP, seed=0
-            )
+            after = engine.register(transform(points, move), up=move[:3, :3] @ WORLD_UP, seed=0)
             expected = move @ before.pose
             same += after.model_id == before.model_id
             agree += (
@@ -104,15 +102,15 @@ def main() -> None:
         "| scan | points | `up` | model | tilt deg | fitness | inlier ratio | set aside | ms |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+    scans = {path.stem: np.load(path).astype(np.float64) for path in files}
     upright = {"given": 0, "estimated": 0}
-    for path in files:
-        points = np.load(path).astype(np.float64)
+    for name, points in scans.items():
         for label, up in (("given", WORLD_UP), ("estimated", None)):
             result = engine.register(points, up=up, seed=0)
             tilt = tilt_deg(result.pose[:3, :3])
             upright[label] += tilt <= 10.0
             lines.append(
-                f"| {path.stem} | {len(points)} | {label} | {result.model_id} | {tilt:.1f} | "
+                f"| {name} | {len(points)} | {label} | {result.model_id} | {tilt:.1f} | "
                 f"{result.fitness:.2f} | {result.inlier_ratio:.2f} | {result.points_set_aside} | "
                 f"{sum(result.timings_ms.values()):.0f} |"
             )
@@ -126,10 +124,10 @@ def main() -> None:
         "| engine options | answers | same model | same model and pose (2 deg, 2 cm) |",
         "|---|---|---|---|",
     ]
-    scans = {path.stem: np.load(path).astype(np.float64) for path in files}
+    moves = motions(args.motions)
     for text, config in configs.items():
         moved = Engine(extractor, engine.library, config=config)
-        lines.append(f"| {text} | {stability(moved, scans, motions(args.motions))} |")
+        lines.append(f"| {text} | {stability(moved, scans, moves)} |")
     publish("\n".join(lines) + "\n", args.out)
 
 
