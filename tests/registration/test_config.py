@@ -28,6 +28,7 @@ DEFAULTS = {
     "up_belief_power": 0.3,
     "heading_proposals": 2,
     "heading_mass": None,
+    "heading_fallback": 0.7,
     "keep_headings": 3,
     "heading_models": 10,
     "heading_draws": 300,

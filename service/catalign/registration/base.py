@@ -35,15 +35,18 @@ class Candidate:
 class Orientation:
     """One way up a query was searched: ``up`` in the observation frame (None: a free search),
     whether the caller gave it, the ``headings`` (radians about ``up``, the yaw that turns the
-    models' canonical frame onto the levelled query) it was described at, best first, and
-    whether they were proposed (else they are evenly spaced), and the belief in the up: the
-    proposal's probability mass (1 for a given up or a floor under the cloud)."""
+    models' canonical frame onto the levelled query) it is described at, best first (with the
+    engine's ``heading_mass``, only the confident ones unless the answer there is weak), and
+    whether they were proposed (else they are evenly spaced), the belief in the up: the
+    proposal's probability mass (1 for a given up or a floor under the cloud), and the level
+    of a floor found under the cloud: its height along ``up`` (None without one)."""
 
     up: np.ndarray | None
     given: bool
     headings: tuple[float, ...]
     headings_proposed: bool = False
     belief: float = 1.0
+    floor_level: float | None = None
 
 
 @dataclass(frozen=True)

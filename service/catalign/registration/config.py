@@ -76,12 +76,15 @@ class EngineConfig(BaseModel):
     """Proposed headings the query is described at, under each up (None: every heading of
     the extractor)."""
     heading_mass: float | None = Field(default=None, gt=0, le=1)
-    """A further heading proposal is described only while the ones before it hold less than
-    this probability mass (None: always ``heading_proposals``): a confident heading network
-    then costs one heading's features, matching and verification instead of two. 0.95 takes
-    0.8x the time on the evaluation's views for a case or none a threshold, but under rigid
-    motions of the real scans the answer kept its model and pose in 19 % of the answers
-    against 29 % (``bench/results/real_scans.md``): off by default."""
+    """A further heading proposal is described at first only while the ones before it hold
+    less than this probability mass (None: always ``heading_proposals``): a confident heading
+    network then costs one heading's features, matching and verification instead of two; the
+    other proposals are searched too when the answer's confidence is below
+    ``heading_fallback``."""
+    heading_fallback: float = Field(default=0.7, ge=0, le=1)
+    """With ``heading_mass``: the confidence below which an answer found at the confident
+    headings alone sends the query to the other proposed headings too (0: never; always
+    without a calibrator)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
     models."""

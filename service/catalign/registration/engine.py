@@ -10,7 +10,8 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
    at (proposed, or every heading without a proposer); the floor, then small clusters
    detached from the chair (:mod:`~catalign.registration.cleanup`), are set aside;
 3. **describe** (:mod:`~catalign.registration.describe`, timed as ``features``): key points and
-   features at every heading of every orientation, in shared forward passes;
+   features at every heading of every orientation (with ``heading_mass``, the confident
+   headings first), in shared forward passes;
 4. under each orientation (:meth:`Engine._search`):
 
    * **shortlist** (:mod:`~catalign.registration.shortlist`): the ``top_k`` library models
@@ -31,6 +32,10 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
 7. **answer**: model, pose, fit statistics, the up it was found under, and each candidate's
    best verification score.
 
+With ``heading_mass``, a query whose first answer is weaker than ``heading_fallback`` goes
+through steps 3 to 6 again at its other proposed headings, every pose found competing with
+the first round's (each refined once).
+
 Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
 turns it into the stages' keyword arguments, and the stages keep their own per-model caches.
 """
@@ -48,7 +53,7 @@ from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
 from catalign.registration.answers import best_other, distinct
-from catalign.registration.base import Alternative, RegistrationResult
+from catalign.registration.base import Alternative, Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
 from catalign.registration.cleanup import detached_mask
 from catalign.registration.confidence import Evidence
@@ -56,7 +61,7 @@ from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import describe, rotations_of
 from catalign.registration.hypothesise import Hypothesiser
 from catalign.registration.match import Matcher
-from catalign.registration.orient import orient
+from catalign.registration.orient import Oriented, orient
 from catalign.registration.refine import Fit, Refiner
 from catalign.registration.search import Search, StageClock, query_searches
 from catalign.registration.shortlist import shortlist
@@ -156,34 +161,80 @@ class Engine:
             cloud = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
             cloud = cloud.without(detached_mask(cloud.points), voxel, config.min_points)
 
-        # Describe the query at every heading of every orientation, in shared forward passes.
-        with clock("features"):
-            rotations = [r for o in oriented.orientations for r in rotations_of(o)]
-            views = describe(
-                self.extractor,
-                cloud.points,
-                rotations,
-                voxels=cloud.voxels,
-                pass_voxels=config.pass_voxels,
-            )
-            searches = query_searches(
-                oriented.orientations, views, config.probe_points, seed, support_radius=2 * voxel
-            )
-
-        # Search under each orientation: shortlist, match, hypothesise and verify.
+        # Describe and search the query at the first headings of every orientation (all of
+        # them, or the confident ones); then at the rest, when the answer found is weak.
         k = config.top_k if top_k is None else top_k
-        found = [
-            (search, item)
-            for search in searches
-            for item in self._search(search, k, estimate_scale, seed, clock)
-        ]
-        found.sort(key=lambda pair: -pair[1].score)
-        if not found:
+        first, rest = _split(oriented)
+        searches = self._described(cloud, first, seed, clock)
+        found = self._found(searches, k, estimate_scale, seed, clock)
+        refined: dict[int, Scored] = {}  # kept for a second round: ICP once per pose
+        answered = self._answered(found, refined, estimate_scale, clock)
+        if rest and (answered is None or self._weak(answered[0][0])):
+            more = self._described(cloud, rest, seed, clock)
+            searches += more
+            found = sorted(found + self._found(more, k, estimate_scale, seed, clock), key=_best)
+            answered = self._answered(found, refined, estimate_scale, clock)
+        if answered is None:
             raise DegenerateInputError(
                 "no pose fits this cloud: its features matched no library model consistently "
                 "(is it a whole object, in metres?)"
             )
 
+        # Answer: the winner, its fit, its alternatives and every candidate's best score.
+        finished, tried = answered
+        candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
+        result = self._answer(finished, cloud, candidates, tried, clock.timings)
+        return replace(result, orientations=tuple(oriented.orientations))
+
+    def _described(
+        self, cloud: CheckedCloud, orientations: list[Orientation], seed: int, clock: StageClock
+    ) -> list[Search]:
+        """The query described at every heading of every one of ``orientations``, in shared
+        forward passes: one search each."""
+        voxel = self.extractor.voxel_size
+        with clock("features"):
+            rotations = [r for o in orientations for r in rotations_of(o)]
+            views = describe(
+                self.extractor,
+                cloud.points,
+                rotations,
+                voxels=cloud.voxels,
+                pass_voxels=self.config.pass_voxels,
+            )
+            return query_searches(
+                orientations, views, self.config.probe_points, seed, support_radius=2 * voxel
+            )
+
+    def _found(
+        self,
+        searches: list[Search],
+        k: int | None,
+        estimate_scale: bool,
+        seed: int,
+        clock: StageClock,
+    ) -> list[tuple[Search, Scored]]:
+        """The verified poses under every search (shortlist, match, hypothesise and verify),
+        best first."""
+        found = [
+            (search, item)
+            for search in searches
+            for item in self._search(search, k, estimate_scale, seed, clock)
+        ]
+        return sorted(found, key=_best)
+
+    def _answered(
+        self,
+        found: list[tuple[Search, Scored]],
+        refined_by_source: dict[int, Scored],
+        estimate_scale: bool,
+        clock: StageClock,
+    ) -> tuple[list[_Finished], list[Scored]] | None:
+        """The finished answers from the verified poses ``found`` (the winner first, then its
+        alternatives) and every pose tried; None when nothing was found. ``refined_by_source``
+        keeps the refined poses by their source's id, for a second call with more poses found."""
+        if not found:
+            return None
+        config = self.config
         # Refine the best poses by ICP and score them again: the best one wins. The best pose
         # of each further distinct answer is refined too: the alternatives.
         with clock("icp_score"):
@@ -193,9 +244,12 @@ class Engine:
                 for pair in distinct(found, 1 + config.alternatives, _scored)
                 if not any(pair is chosen for chosen in best)
             ]
-            refined = [(search, self._refined(search, item)) for search, item in best + others]
+            for search, item in best + others:
+                if id(item) not in refined_by_source:
+                    refined_by_source[id(item)] = self._refined(search, item)
+            refined = [(search, refined_by_source[id(item)]) for search, item in best + others]
             winner = max(refined[: len(best)], key=lambda pair: pair[1].score)
-            rest = sorted((p for p in refined if p is not winner), key=lambda p: -p[1].score)
+            rest = sorted((p for p in refined if p is not winner), key=_best)
             answers = distinct([winner, *rest], 1 + config.alternatives, _scored)
             leading = best + others
 
@@ -206,21 +260,15 @@ class Engine:
             tried = [item for _, item in refined]
             tried += [item for _, item in found if id(item) not in sources]
             finished = [
-                self._finish(
-                    search,
-                    item,
-                    tried,
-                    estimate_scale,
-                    oriented.floor_level if search is searches[0] else None,
-                    refit=rank == 0,
-                )
+                self._finish(search, item, tried, estimate_scale, refit=rank == 0)
                 for rank, (search, item) in enumerate(answers)
             ]
+        return finished, tried
 
-        # Answer: the winner, its fit, its alternatives and every candidate's best score.
-        candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
-        result = self._answer(finished, cloud, candidates, tried, clock.timings)
-        return replace(result, orientations=tuple(oriented.orientations))
+    def _weak(self, answer: _Finished) -> bool:
+        """Whether an answer found at the confident headings alone is too unsure to keep
+        without searching the other proposed headings (always, without a calibrator)."""
+        return answer.confidence is None or answer.confidence < self.config.heading_fallback
 
     def _search(
         self, search: Search, k: int | None, estimate_scale: bool, seed: int, clock: StageClock
@@ -286,7 +334,6 @@ class Engine:
         item: Scored,
         tried: list[Scored],
         estimate_scale: bool,
-        floor_level: float | None,
         *,
         refit: bool,
     ) -> _Finished:
@@ -304,7 +351,7 @@ class Engine:
                 search.keypoints,
                 turn,
                 solid=search.solid,
-                floor_level=floor_level,
+                floor_level=search.orientation.floor_level,
                 refit=refit,
             )
             fit = self.refiner.fit(pose, search.keypoints)
@@ -388,6 +435,23 @@ class _Finished:
 
 def _scored(pair: tuple[Search, Scored]) -> Scored:
     return pair[1]
+
+
+def _best(pair: tuple[Search, Scored]) -> float:
+    """Sorts verified poses best first."""
+    return -pair[1].score
+
+
+def _split(oriented: Oriented) -> tuple[list[Orientation], list[Orientation]]:
+    """The orientations at the headings described first, and those at the rest (only the
+    orientations that have any)."""
+    pairs = zip(oriented.orientations, oriented.first, strict=True)
+    first, rest = [], []
+    for orientation, count in pairs:
+        first.append(replace(orientation, headings=orientation.headings[:count]))
+        if count < len(orientation.headings):
+            rest.append(replace(orientation, headings=orientation.headings[count:]))
+    return first, rest
 
 
 def _spanned(model: LibraryEntry, pose: np.ndarray, keypoints: np.ndarray) -> float:

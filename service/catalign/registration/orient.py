@@ -52,12 +52,13 @@ SNAP_MIN_POINTS = 30
 
 @dataclass(frozen=True)
 class Oriented:
-    """The orientations to search, best first, the mask of the points that are floor, and the
-    floor's level: its height along the first orientation's up (None without a floor)."""
+    """The orientations to search, best first, the mask of the points that are floor, and how
+    many of each orientation's headings to describe first (the confident ones; the rest only
+    when the answer found at those is weak)."""
 
     orientations: list[Orientation]
     floor: np.ndarray
-    floor_level: float | None = None
+    first: tuple[int, ...]
 
 
 def orient(
@@ -74,8 +75,8 @@ def orient(
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
     proposed); ``heading_proposals`` None describes every heading even with a proposer, and
-    with ``heading_mass`` a further proposal is kept only while the ones before it hold less
-    than that probability mass."""
+    with ``heading_mass`` a further proposal is among the first described only while the ones
+    before it hold less than that probability mass."""
     given = up is not None
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
@@ -100,33 +101,33 @@ def orient(
             break
     kept = points[~floor]
 
+    levels = [float(np.median(points[floor] @ ups[0])) if floor.any() else None]
+    levels += [None] * (len(ups) - 1)  # the floor lies under the first up only
     propose = proposer is not None and headings > 1 and heading_proposals is not None
     if propose and ups[0] is not None:
         levelled = [kept @ leveller(u).T for u in ups]
-        proposed = [
-            _confident(found, heading_mass)
-            for found in proposer.headings(levelled, heading_proposals)
-        ]
+        proposed = proposer.headings(levelled, heading_proposals)
         orientations = [
-            Orientation(u, given, tuple(float(p.value) for p in found), True, belief)
-            for u, found, belief in zip(ups, proposed, beliefs, strict=True)
+            Orientation(u, given, tuple(float(p.value) for p in found), True, belief, level)
+            for u, found, belief, level in zip(ups, proposed, beliefs, levels, strict=True)
         ]
+        first = tuple(_confident(found, heading_mass) for found in proposed)
     else:
         orientations = [
-            Orientation(u, given, even_headings(headings), False, belief)
-            for u, belief in zip(ups, beliefs, strict=True)
+            Orientation(u, given, even_headings(headings), False, belief, level)
+            for u, belief, level in zip(ups, beliefs, levels, strict=True)
         ]
-    level = float(np.median(points[floor] @ ups[0])) if floor.any() else None
-    return Oriented(orientations, floor, level)
+        first = tuple(len(o.headings) for o in orientations)
+    return Oriented(orientations, floor, first)
 
 
-def _confident(proposals: list[Proposal], mass: float | None) -> list[Proposal]:
-    """The leading ``proposals`` up to the first whose predecessors hold ``mass`` (all of them
-    when None)."""
+def _confident(proposals: list[Proposal], mass: float | None) -> int:
+    """How many of the leading ``proposals`` come before the first whose predecessors hold
+    ``mass`` (all of them when None)."""
     if mass is None:
-        return proposals
+        return len(proposals)
     held = np.cumsum([0.0] + [p.score for p in proposals[:-1]])
-    return [p for p, before in zip(proposals, held, strict=True) if before < mass]
+    return int(np.sum(held < mass))
 
 
 def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.ndarray:
