@@ -78,12 +78,12 @@ class EngineConfig(BaseModel):
     heading_mass: float | None = Field(default=None, gt=0, le=1)
     """A further heading proposal is described at first only while the ones before it hold
     less than this probability mass (None: always ``heading_proposals``): a confident heading
-    network then costs one heading's features, matching and verification instead of two; the
-    other proposals are searched too when the answer's confidence is below
-    ``heading_fallback``."""
+    network then costs one heading's features, matching and verification instead of two; when
+    the answer's confidence is below ``heading_fallback``, the query is searched again at every
+    proposed heading."""
     heading_fallback: float = Field(default=0.7, ge=0, le=1)
     """With ``heading_mass``: the confidence below which an answer found at the confident
-    headings alone sends the query to the other proposed headings too (0: never; always
+    headings alone sends the query to a search at every proposed heading (0: never; always
     without a calibrator)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
@@ -123,6 +123,14 @@ class EngineConfig(BaseModel):
     (``bench/results/tradeoff-transfer.md``): off by default."""
     transfer_models: int = Field(default=5, ge=0)
     """Shortlisted models, best first, the poses are carried over to."""
+    rival_models: int = Field(default=0, ge=0)
+    """Leading models other than the winner that its refined pose is tried on: one that fits
+    the query better by ``rival_margin`` after ICP replaces it (the observed chair's own CAD
+    beaten by a near-twin; 0: none)."""
+    rival_icp: int = Field(default=1, ge=1)
+    """Of those, the ones that fit best at the winner's pose that get ICP."""
+    rival_margin: float = Field(default=0.05, ge=0, le=1)
+    """Fitness by which a rival must beat the winner."""
     refine: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
     alternatives: int = Field(default=3, ge=0)

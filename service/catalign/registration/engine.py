@@ -25,16 +25,19 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
      times the model surface they cover, nudged by the layout with an up;
 
 5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
-   poses of all orientations, scored again the same way; the best wins;
+   poses of all orientations, scored again the same way; the best wins, unless another leading
+   model fits the query clearly better at its pose (:mod:`~catalign.registration.rivals`,
+   with ``rival_models``);
 6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent; an alternative is only stood upright and centred;
-7. **answer**: model, pose, fit statistics, the up it was found under, and each candidate's
-   best verification score.
+7. **answer** (:mod:`~catalign.registration.finish`, with step 6): model, pose, fit
+   statistics, evidence and confidence, the up it was found under, the alternatives, and each
+   candidate's best verification score.
 
-With ``heading_mass``, a query whose first answer is weaker than ``heading_fallback`` goes
-through steps 3 to 6 again at its other proposed headings, every pose found competing with
-the first round's (each refined once).
+With ``heading_mass``, a query whose first answer is less confident than ``heading_fallback``
+is searched again (steps 4 to 7) at every proposed heading, the first headings' views kept:
+its answer is then the one it gets without ``heading_mass``.
 
 Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
 turns it into the stages' keyword arguments, and the stages keep their own per-model caches.
@@ -42,27 +45,26 @@ turns it into the stages' keyword arguments, and the stages keep their own per-m
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
-from catalign.geometry.se3 import scale_of, transform
-from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
-from catalign.registration.answers import best_other, distinct
-from catalign.registration.base import Alternative, Orientation, RegistrationResult
+from catalign.registration.answers import distinct
+from catalign.registration.base import Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
 from catalign.registration.cleanup import detached_mask
-from catalign.registration.confidence import Evidence
 from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.describe import describe, rotations_of
+from catalign.registration.describe import QueryView, describe, rotations_of
+from catalign.registration.finish import Finished, Finisher
 from catalign.registration.hypothesise import Hypothesiser
 from catalign.registration.match import Matcher
-from catalign.registration.orient import Oriented, orient
-from catalign.registration.refine import Fit, Refiner
+from catalign.registration.orient import orient
+from catalign.registration.refine import Refiner
+from catalign.registration.rivals import RivalCheck
 from catalign.registration.search import Search, StageClock, query_searches
 from catalign.registration.shortlist import shortlist
 from catalign.registration.transfer import transferred
@@ -71,7 +73,7 @@ from catalign.registration.validation import (
     CheckedCloud,
     validate_cloud,
 )
-from catalign.registration.verify import Scored, Verifier, best_per_model
+from catalign.registration.verify import Scored, Verifier
 
 
 class Engine:
@@ -113,8 +115,15 @@ class Engine:
             cell=config.coverage_cell * voxel,
         )
         self.refiner = from_config(Refiner, config, library, distance=self.icp_distance)
-        self.category_fitter = CategoryFitter(
-            library, self.refiner, extent_points=config.coverage_points
+        self.rival_check = from_config(RivalCheck, config, library, self.refiner)
+        self.finisher = Finisher(
+            library,
+            self.refiner,
+            self.verifier,
+            CategoryFitter(library, self.refiner, extent_points=config.coverage_points),
+            icp_distance=self.icp_distance,
+            exact_fitness=config.exact_fitness,
+            calibrator=extractor.confidence,
         )
 
     def register(
@@ -162,18 +171,20 @@ class Engine:
             cloud = cloud.without(detached_mask(cloud.points), voxel, config.min_points)
 
         # Describe and search the query at the first headings of every orientation (all of
-        # them, or the confident ones); then at the rest, when the answer found is weak.
+        # them, or the confident ones); when the answer found there is weak, search again at
+        # every proposed heading (the first ones' views kept).
         k = config.top_k if top_k is None else top_k
-        first, rest = _split(oriented)
+        first = [
+            replace(o, headings=o.headings[:count])
+            for o, count in zip(oriented.orientations, oriented.first, strict=True)
+        ]
         searches = self._described(cloud, first, seed, clock)
         found = self._found(searches, k, estimate_scale, seed, clock)
-        refined: dict[int, Scored] = {}  # kept for a second round: ICP once per pose
-        answered = self._answered(found, refined, estimate_scale, clock)
-        if rest and (answered is None or self._weak(answered[0][0])):
-            more = self._described(cloud, rest, seed, clock)
-            searches += more
-            found = sorted(found + self._found(more, k, estimate_scale, seed, clock), key=_best)
-            answered = self._answered(found, refined, estimate_scale, clock)
+        answered = self._answered(found, estimate_scale, clock)
+        if oriented.held_back and (answered is None or self._weak(answered[0][0])):
+            searches = self._widened(searches, oriented.orientations, cloud, seed, clock)
+            found = self._found(searches, k, estimate_scale, seed, clock)
+            answered = self._answered(found, estimate_scale, clock)
         if answered is None:
             raise DegenerateInputError(
                 "no pose fits this cloud: its features matched no library model consistently "
@@ -183,7 +194,7 @@ class Engine:
         # Answer: the winner, its fit, its alternatives and every candidate's best score.
         finished, tried = answered
         candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
-        result = self._answer(finished, cloud, candidates, tried, clock.timings)
+        result = self.finisher.result(finished, cloud, candidates, tried, clock.timings)
         return replace(result, orientations=tuple(oriented.orientations))
 
     def _described(
@@ -191,18 +202,53 @@ class Engine:
     ) -> list[Search]:
         """The query described at every heading of every one of ``orientations``, in shared
         forward passes: one search each."""
-        voxel = self.extractor.voxel_size
+        views = self._views(cloud, orientations, clock)
+        return query_searches(
+            orientations,
+            views,
+            self.config.probe_points,
+            seed,
+            support_radius=2 * self.extractor.voxel_size,
+        )
+
+    def _widened(
+        self,
+        searches: list[Search],
+        orientations: list[Orientation],
+        cloud: CheckedCloud,
+        seed: int,
+        clock: StageClock,
+    ) -> list[Search]:
+        """``searches`` again under the ``orientations`` they were cut from (the same ups,
+        more headings): their views kept, the further headings described."""
+        further = [
+            replace(whole, headings=whole.headings[len(search.views) :])
+            for search, whole in zip(searches, orientations, strict=True)
+        ]
+        views = iter(self._views(cloud, further, clock))
+        return [
+            Search(
+                whole,
+                search.views + [next(views) for _ in extra.headings],
+                search.probes,
+                search.support_radius,
+            )
+            for search, whole, extra in zip(searches, orientations, further, strict=True)
+        ]
+
+    def _views(
+        self, cloud: CheckedCloud, orientations: list[Orientation], clock: StageClock
+    ) -> list[QueryView]:
+        """The query described at every heading of every one of ``orientations``, in that
+        order, in shared forward passes."""
         with clock("features"):
             rotations = [r for o in orientations for r in rotations_of(o)]
-            views = describe(
+            return describe(
                 self.extractor,
                 cloud.points,
                 rotations,
                 voxels=cloud.voxels,
                 pass_voxels=self.config.pass_voxels,
-            )
-            return query_searches(
-                orientations, views, self.config.probe_points, seed, support_radius=2 * voxel
             )
 
     def _found(
@@ -223,15 +269,10 @@ class Engine:
         return sorted(found, key=_best)
 
     def _answered(
-        self,
-        found: list[tuple[Search, Scored]],
-        refined_by_source: dict[int, Scored],
-        estimate_scale: bool,
-        clock: StageClock,
-    ) -> tuple[list[_Finished], list[Scored]] | None:
+        self, found: list[tuple[Search, Scored]], estimate_scale: bool, clock: StageClock
+    ) -> tuple[list[Finished], list[Scored]] | None:
         """The finished answers from the verified poses ``found`` (the winner first, then its
-        alternatives) and every pose tried; None when nothing was found. ``refined_by_source``
-        keeps the refined poses by their source's id, for a second call with more poses found."""
+        alternatives) and every pose tried; None when nothing was found."""
         if not found:
             return None
         config = self.config
@@ -244,11 +285,10 @@ class Engine:
                 for pair in distinct(found, 1 + config.alternatives, _scored)
                 if not any(pair is chosen for chosen in best)
             ]
-            for search, item in best + others:
-                if id(item) not in refined_by_source:
-                    refined_by_source[id(item)] = self._refined(search, item)
-            refined = [(search, refined_by_source[id(item)]) for search, item in best + others]
+            refined = [(search, self._refined(search, item)) for search, item in best + others]
             winner = max(refined[: len(best)], key=lambda pair: pair[1].score)
+            winner = self._challenged(winner, found)
+            refined += [winner] if not any(winner is pair for pair in refined) else []
             rest = sorted((p for p in refined if p is not winner), key=_best)
             answers = distinct([winner, *rest], 1 + config.alternatives, _scored)
             leading = best + others
@@ -260,12 +300,25 @@ class Engine:
             tried = [item for _, item in refined]
             tried += [item for _, item in found if id(item) not in sources]
             finished = [
-                self._finish(search, item, tried, estimate_scale, refit=rank == 0)
+                self.finisher.finish(search, item, tried, estimate_scale, refit=rank == 0)
                 for rank, (search, item) in enumerate(answers)
             ]
         return finished, tried
 
-    def _weak(self, answer: _Finished) -> bool:
+    def _challenged(
+        self, winner: tuple[Search, Scored], found: list[tuple[Search, Scored]]
+    ) -> tuple[Search, Scored]:
+        """The refined ``winner``, or a rival model that fits the query clearly better at its
+        pose (:mod:`~catalign.registration.rivals`), the models led by their best pose
+        ``found``."""
+        search, item = winner
+        leading = list(dict.fromkeys(pair[1].hypothesis.model_id for pair in found))
+        rival = self.rival_check.challenger(item.hypothesis, search.keypoints, leading)
+        if rival is None:
+            return winner
+        return search, self._weighed(search, self.verifier.score(rival, search.checks))
+
+    def _weak(self, answer: Finished) -> bool:
         """Whether an answer found at the confident headings alone is too unsure to keep
         without searching the other proposed headings (always, without a calibrator)."""
         return answer.confidence is None or answer.confidence < self.config.heading_fallback
@@ -328,110 +381,6 @@ class Engine:
         pose = self.refiner.refine(item.hypothesis, search.keypoints)
         return self._weighed(search, self.verifier.score(pose, search.checks))
 
-    def _finish(
-        self,
-        search: Search,
-        item: Scored,
-        tried: list[Scored],
-        estimate_scale: bool,
-        *,
-        refit: bool,
-    ) -> _Finished:
-        """A refined answer made final: with an up, another instance (a loose fit) is given
-        the observed chair's frame (the category fit; its ICP at the observed size only with
-        ``refit``, for the winner: for the alternatives it measured a tenth of the query's time
-        and changed little); then its statistics, and the evidence (against every pose
-        ``tried``) and confidence of it."""
-        pose = item.hypothesis
-        fit = self.refiner.fit(pose, search.keypoints)
-        turn = search.turn
-        if turn is not None and not estimate_scale and fit.fitness < self.config.exact_fitness:
-            pose = self.category_fitter.fit(
-                pose,
-                search.keypoints,
-                turn,
-                solid=search.solid,
-                floor_level=search.orientation.floor_level,
-                refit=refit,
-            )
-            fit = self.refiner.fit(pose, search.keypoints)
-        explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
-        score = max(item.score, 1e-9)
-        evidence = Evidence(
-            score=item.score,
-            explained=explained,
-            covered=covered,
-            heading_margin=best_other(tried, item, same_model=True) / score,
-            model_margin=best_other(tried, item, same_model=False) / score,
-            fitness=float(fit.fitness),
-            rmse=float(fit.inlier_rmse) / self.icp_distance,
-            inlier_ratio=fit.num_inliers / len(search.keypoints),
-            span=_spanned(self.library[pose.model_id], pose.transform, search.keypoints),
-            up_given=search.orientation.given,
-            up_belief=search.orientation.belief,
-            keypoints=len(search.keypoints),
-        )
-        calibrator = self.extractor.confidence
-        confidence = None if calibrator is None else calibrator.probability(evidence)
-        return _Finished(search, replace(item, hypothesis=pose), fit, evidence, confidence)
-
-    def _answer(
-        self,
-        finished: list[_Finished],
-        cloud: CheckedCloud,
-        candidates: list[str],
-        tried: list[Scored],
-        timings: dict[str, float],
-    ) -> RegistrationResult:
-        """The result for the first of the ``finished`` answers (the others are its
-        alternatives): the fit statistics on the query's key points, the candidates'
-        best scores among the poses ``tried``, and the matches of the pose."""
-        best, others = finished[0], finished[1:]
-        winner, fit, search = best.item.hypothesis, best.fit, best.search
-        num_inliers = fit.num_inliers
-        return RegistrationResult(
-            model_id=winner.model_id,
-            pose=winner.transform,
-            fitness=float(fit.fitness),
-            inlier_rmse=float(fit.inlier_rmse),
-            num_inliers=num_inliers,
-            inlier_ratio=num_inliers / len(search.keypoints),
-            candidates=best_per_model(candidates, tried),
-            timings_ms=timings,
-            correspondences=(
-                winner.view.keypoints[winner.matches[:, 0]],
-                self.library[winner.model_id].keypoints[winner.matches[:, 1]],
-            ),
-            scale=scale_of(winner.transform),
-            points_set_aside=cloud.set_aside,
-            orientation=search.orientation,
-            confidence=best.confidence,
-            evidence=best.evidence,
-            alternatives=tuple(
-                Alternative(
-                    model_id=other.item.hypothesis.model_id,
-                    pose=other.item.hypothesis.transform,
-                    score=other.item.score,
-                    fitness=float(other.fit.fitness),
-                    confidence=other.confidence,
-                    evidence=other.evidence,
-                )
-                for other in others
-            ),
-        )
-
-
-@dataclass(frozen=True, eq=False)
-class _Finished:
-    """An answer made final: where it was found, its pose and score, its fit, evidence and
-    confidence."""
-
-    search: Search
-    item: Scored
-    fit: Fit
-    evidence: Evidence
-    confidence: float | None
-
 
 def _scored(pair: tuple[Search, Scored]) -> Scored:
     return pair[1]
@@ -440,23 +389,3 @@ def _scored(pair: tuple[Search, Scored]) -> Scored:
 def _best(pair: tuple[Search, Scored]) -> float:
     """Sorts verified poses best first."""
     return -pair[1].score
-
-
-def _split(oriented: Oriented) -> tuple[list[Orientation], list[Orientation]]:
-    """The orientations at the headings described first, and those at the rest (only the
-    orientations that have any)."""
-    pairs = zip(oriented.orientations, oriented.first, strict=True)
-    first, rest = [], []
-    for orientation, count in pairs:
-        first.append(replace(orientation, headings=orientation.headings[:count]))
-        if count < len(orientation.headings):
-            rest.append(replace(orientation, headings=orientation.headings[count:]))
-    return first, rest
-
-
-def _spanned(model: LibraryEntry, pose: np.ndarray, keypoints: np.ndarray) -> float:
-    """The smallest share, over the model's axes, of its extent that the key points span in
-    its frame under ``pose`` (2nd to 98th percentile: stray points do not stretch it)."""
-    local = transform(keypoints, np.linalg.inv(pose))
-    low, high = np.percentile(local, [2.0, 98.0], axis=0)
-    return float(np.min((high - low) / np.maximum(model.size, 1e-6)))

@@ -60,6 +60,11 @@ class Oriented:
     floor: np.ndarray
     first: tuple[int, ...]
 
+    @property
+    def held_back(self) -> bool:
+        """Whether some orientation has headings that are not among the first described."""
+        return any(n < len(o.headings) for o, n in zip(self.orientations, self.first, strict=True))
+
 
 def orient(
     points: np.ndarray,
