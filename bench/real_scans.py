@@ -12,7 +12,7 @@ model, and those whose pose is the moved pose of the unmoved answer within 2 deg
 Prints the tables and writes them to ``bench/results/real_scans.md``.
 
     .venv/bin/python bench/real_scans.py [--scans DIR] [--model-dir DIR] [--library DIR]
-        [--motions 8] [--configs default heading_mass=0.95]
+        [--motions 8] [--configs default heading_mass=none]
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.features.orientation import OrientationProposer, Proposal
 from catalign.geometry.se3 import make_pose, rotation_error_deg
 from catalign.library.index import load
+from catalign.registration.base import RegistrationResult
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.registration.gravity import leveller, yaw_of
@@ -60,11 +61,11 @@ def _registered(
     view: tuple[np.ndarray, np.ndarray],
     monkeypatch: pytest.MonkeyPatch,
     first_off_deg: float,
-    **options: float,
-) -> tuple[bool, float, int]:
-    """Whether the view is recovered (own model, 2 degrees, 1 cm), the answer's confidence
-    and how many headings were described, when the proposer puts a heading ``first_off_deg``
-    from the truth first with 0.97 of the mass and the true heading second."""
+    **options: float | None,
+) -> tuple[RegistrationResult, bool, int]:
+    """The answer, whether the view is recovered (own model, 2 degrees, 1 cm) and how many
+    headings were described, when the proposer puts a heading ``first_off_deg`` from the
+    truth first with 0.97 of the mass and the true heading second."""
     points, pose = view
     truth = yaw_of(leveller(UP) @ pose[:3, :3])
     proposals = [Proposal(truth + np.radians(first_off_deg), 0.97), Proposal(truth, 0.02)]
@@ -79,35 +80,37 @@ def _registered(
 
     monkeypatch.setattr(extractor, "describe_many", counted)
     library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
-    engine = Engine(extractor, library, config=EngineConfig(heading_mass=0.95, **options))
+    engine = Engine(extractor, library, config=EngineConfig(**({"heading_mass": 0.95} | options)))
     result = engine.register(points, up=UP, seed=0)
     recovered = (
         result.model_id == procedural_shape(SEED).shape_id
         and rotation_error_deg(result.pose[:3, :3], pose[:3, :3]) < 2.0
         and float(np.linalg.norm(result.pose[:3, 3] - pose[:3, 3])) < 0.01
     )
-    return recovered, result.confidence, len(described)
+    return result, recovered, len(described)
 
 
 def test_a_confident_right_heading_is_described_alone(extractor, view, monkeypatch) -> None:
-    recovered, confidence, described = _registered(extractor, view, monkeypatch, 0.0)
-    assert recovered and confidence >= EngineConfig().heading_fallback
+    result, recovered, described = _registered(extractor, view, monkeypatch, 0.0)
+    assert recovered and result.confidence >= EngineConfig().heading_fallback
     assert described == 1
 
 
-def test_a_doubted_answer_sends_the_query_to_the_other_heading(
-    extractor, view, monkeypatch
-) -> None:
-    recovered, confidence, described = _registered(extractor, view, monkeypatch, 90.0)
-    assert recovered, f"not recovered after the fallback (confidence {confidence:.2f})"
-    assert described == 2
+def test_a_doubted_answer_is_the_answer_at_both_headings(extractor, view, monkeypatch) -> None:
+    result, recovered, described = _registered(extractor, view, monkeypatch, 90.0)
+    assert recovered, f"not recovered after the fallback (confidence {result.confidence:.2f})"
+    assert described == 2  # the first heading's view is kept, not described again
+    both, _, _ = _registered(extractor, view, monkeypatch, 90.0, heading_mass=None)
+    assert result.model_id == both.model_id
+    np.testing.assert_allclose(result.pose, both.pose, atol=1e-9)
+    assert result.confidence == pytest.approx(both.confidence)
 
 
 def test_without_the_fallback_a_wrong_first_heading_is_all_there_is(
     extractor, view, monkeypatch
 ) -> None:
-    recovered, confidence, described = _registered(
+    result, recovered, described = _registered(
         extractor, view, monkeypatch, 90.0, heading_fallback=0.0
     )
     assert described == 1
-    assert not recovered and confidence < EngineConfig().heading_fallback
+    assert not recovered and result.confidence < EngineConfig().heading_fallback

@@ -60,12 +60,12 @@ from catalign.registration.cleanup import detached_mask
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView, describe, rotations_of
 from catalign.registration.finish import Finished, Finisher
-from catalign.registration.hypothesise import Hypothesiser
+from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher
 from catalign.registration.orient import orient
 from catalign.registration.refine import Refiner
 from catalign.registration.rivals import RivalCheck
-from catalign.registration.search import Search, StageClock, query_searches
+from catalign.registration.search import Request, Search, StageClock, query_searches
 from catalign.registration.shortlist import shortlist
 from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
@@ -173,18 +173,16 @@ class Engine:
         # Describe and search the query at the first headings of every orientation (all of
         # them, or the confident ones); when the answer found there is weak, search again at
         # every proposed heading (the first ones' views kept).
-        k = config.top_k if top_k is None else top_k
+        request = Request(config.top_k if top_k is None else top_k, estimate_scale, seed, clock)
         first = [
             replace(o, headings=o.headings[:count])
             for o, count in zip(oriented.orientations, oriented.first, strict=True)
         ]
-        searches = self._described(cloud, first, seed, clock)
-        found = self._found(searches, k, estimate_scale, seed, clock)
-        answered = self._answered(found, estimate_scale, clock)
+        searches = self._described(cloud, first, request)
+        answered = self._answered(self._found(searches, request), request)
         if oriented.held_back and (answered is None or self._weak(answered[0][0])):
-            searches = self._widened(searches, oriented.orientations, cloud, seed, clock)
-            found = self._found(searches, k, estimate_scale, seed, clock)
-            answered = self._answered(found, estimate_scale, clock)
+            searches = self._widened(searches, oriented.orientations, cloud, request)
+            answered = self._answered(self._found(searches, request), request)
         if answered is None:
             raise DegenerateInputError(
                 "no pose fits this cloud: its features matched no library model consistently "
@@ -198,16 +196,16 @@ class Engine:
         return replace(result, orientations=tuple(oriented.orientations))
 
     def _described(
-        self, cloud: CheckedCloud, orientations: list[Orientation], seed: int, clock: StageClock
+        self, cloud: CheckedCloud, orientations: list[Orientation], request: Request
     ) -> list[Search]:
         """The query described at every heading of every one of ``orientations``, in shared
         forward passes: one search each."""
-        views = self._views(cloud, orientations, clock)
+        views = self._views(cloud, orientations, request.clock)
         return query_searches(
             orientations,
             views,
             self.config.probe_points,
-            seed,
+            request.seed,
             support_radius=2 * self.extractor.voxel_size,
         )
 
@@ -216,8 +214,7 @@ class Engine:
         searches: list[Search],
         orientations: list[Orientation],
         cloud: CheckedCloud,
-        seed: int,
-        clock: StageClock,
+        request: Request,
     ) -> list[Search]:
         """``searches`` again under the ``orientations`` they were cut from (the same ups,
         more headings): their views kept, the further headings described."""
@@ -225,7 +222,7 @@ class Engine:
             replace(whole, headings=whole.headings[len(search.views) :])
             for search, whole in zip(searches, orientations, strict=True)
         ]
-        views = iter(self._views(cloud, further, clock))
+        views = iter(self._views(cloud, further, request.clock))
         return [
             Search(
                 whole,
@@ -251,31 +248,20 @@ class Engine:
                 pass_voxels=self.config.pass_voxels,
             )
 
-    def _found(
-        self,
-        searches: list[Search],
-        k: int | None,
-        estimate_scale: bool,
-        seed: int,
-        clock: StageClock,
-    ) -> list[tuple[Search, Scored]]:
+    def _found(self, searches: list[Search], request: Request) -> list[tuple[Search, Scored]]:
         """The verified poses under every search (shortlist, match, hypothesise and verify),
         best first."""
-        found = [
-            (search, item)
-            for search in searches
-            for item in self._search(search, k, estimate_scale, seed, clock)
-        ]
+        found = [(search, item) for search in searches for item in self._search(search, request)]
         return sorted(found, key=_best)
 
     def _answered(
-        self, found: list[tuple[Search, Scored]], estimate_scale: bool, clock: StageClock
+        self, found: list[tuple[Search, Scored]], request: Request
     ) -> tuple[list[Finished], list[Scored]] | None:
         """The finished answers from the verified poses ``found`` (the winner first, then its
         alternatives) and every pose tried; None when nothing was found."""
         if not found:
             return None
-        config = self.config
+        config, clock = self.config, request.clock
         # Refine the best poses by ICP and score them again: the best one wins. The best pose
         # of each further distinct answer is refined too: the alternatives.
         with clock("icp_score"):
@@ -285,10 +271,14 @@ class Engine:
                 for pair in distinct(found, 1 + config.alternatives, _scored)
                 if not any(pair is chosen for chosen in best)
             ]
-            refined = [(search, self._refined(search, item)) for search, item in best + others]
+            refined = [
+                (search, self._refined(search, item, request)) for search, item in best + others
+            ]
             winner = max(refined[: len(best)], key=lambda pair: pair[1].score)
-            winner = self._challenged(winner, found)
-            refined += [winner] if not any(winner is pair for pair in refined) else []
+            challenged = self._challenged(winner, found)
+            if challenged is not winner:  # a rival won; the winner may stay an alternative
+                refined.append(challenged)
+                winner = challenged
             rest = sorted((p for p in refined if p is not winner), key=_best)
             answers = distinct([winner, *rest], 1 + config.alternatives, _scored)
             leading = best + others
@@ -300,7 +290,7 @@ class Engine:
             tried = [item for _, item in refined]
             tried += [item for _, item in found if id(item) not in sources]
             finished = [
-                self.finisher.finish(search, item, tried, estimate_scale, refit=rank == 0)
+                self.finisher.finish(search, item, tried, request.estimate_scale, refit=rank == 0)
                 for rank, (search, item) in enumerate(answers)
             ]
         return finished, tried
@@ -323,33 +313,25 @@ class Engine:
         without searching the other proposed headings (always, without a calibrator)."""
         return answer.confidence is None or answer.confidence < self.config.heading_fallback
 
-    def _search(
-        self, search: Search, k: int | None, estimate_scale: bool, seed: int, clock: StageClock
-    ) -> list[Scored]:
+    def _search(self, search: Search, request: Request) -> list[Scored]:
         """The verified poses of the query under one orientation, best first; ``search``
         records its shortlist and its verification checks."""
-        turn = search.turn
+        turn, seed, clock = search.turn, request.seed, request.clock
         # Shortlist the models most like the query, best first.
         with clock("shortlist"):
-            search.candidates = shortlist(self.library, search.views, k, turn)
+            search.candidates = shortlist(self.library, search.views, request.k, turn)
 
-        # Match: keep the headings the leading candidates agree with, match every candidate there.
+        # Match: keep the headings the leading candidates agree with, match every candidate
+        # there, and hypothesise poses from each candidate's matches at each kept heading.
         with clock("match_ransac"):
             leading = search.candidates[: self.config.heading_models]
             views = self.matcher.choose_headings(leading, search.views, search.probes, turn, seed)
-            matches = [
-                self.matcher.match(model_id, view, seed)
-                for model_id in clock.each(search.candidates)
-                for view in views
-            ]
-
-        # Hypothesise poses from each candidate's matches at each kept heading.
-        with clock("match_ransac"):
             hypotheses = [
                 hypothesis
-                for found in clock.each(matches)
-                for hypothesis in self.hypothesiser.poses(
-                    found, turn, estimate_scale=estimate_scale, seed=seed
+                for model_id in clock.each(search.candidates)
+                for view in views
+                for hypothesis in request.poses_of(
+                    model_id, view, lambda m=model_id, v=view: self._posed(m, v, turn, request)
                 )
             ]
 
@@ -376,10 +358,23 @@ class Engine:
         belief = search.orientation.belief**self.config.up_belief_power
         return Scored(item.hypothesis, item.score * belief)
 
-    def _refined(self, search: Search, item: Scored) -> Scored:
-        """``item``'s pose refined by ICP onto its model and scored again."""
-        pose = self.refiner.refine(item.hypothesis, search.keypoints)
-        return self._weighed(search, self.verifier.score(pose, search.checks))
+    def _posed(
+        self, model_id: str, view: QueryView, turn: np.ndarray | None, request: Request
+    ) -> list[Hypothesis]:
+        """The poses of a model from its matches with the query at one heading."""
+        found = self.matcher.match(model_id, view, request.seed)
+        return self.hypothesiser.poses(
+            found, turn, estimate_scale=request.estimate_scale, seed=request.seed
+        )
+
+    def _refined(self, search: Search, item: Scored, request: Request) -> Scored:
+        """``item``'s pose refined by ICP onto its model and scored again (once a call)."""
+
+        def refine() -> Scored:
+            pose = self.refiner.refine(item.hypothesis, search.keypoints)
+            return self._weighed(search, self.verifier.score(pose, search.checks))
+
+        return request.refined_of(item.hypothesis, refine)
 
 
 def _scored(pair: tuple[Search, Scored]) -> Scored:

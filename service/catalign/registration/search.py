@@ -1,6 +1,7 @@
 """The query as the engine searches it: one :class:`Search` per orientation (its views at each
 heading, the key points and probe rows verification uses, its shortlist and checks once
-searched), and the :class:`StageClock` that times the engine's steps and checks its deadline.
+searched), the :class:`Request` that holds one call's options and what its search rounds
+share, and the :class:`StageClock` that times the engine's steps and checks its deadline.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from catalign.deadline import Deadline
 from catalign.registration.base import Orientation
 from catalign.registration.category_fit import supported
 from catalign.registration.describe import QueryView, turn_of
+from catalign.registration.hypothesise import Hypothesis
 from catalign.registration.match import probe_rows
-from catalign.registration.verify import QueryChecks
+from catalign.registration.verify import QueryChecks, Scored
 
 T = TypeVar("T")
 
@@ -67,6 +69,36 @@ def query_searches(
         probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
         searches.append(Search(orientation, mine, probes, support_radius))
     return searches
+
+
+@dataclass(eq=False)
+class Request:
+    """One call of the engine: its shortlist size ``k`` (None: every model), whether it
+    estimates scale, its seed and clock, and what a second search round (more headings of the
+    same orientations) takes over from the first: each model's poses at each view, and each
+    pose's refinement, both deterministic."""
+
+    k: int | None
+    estimate_scale: bool
+    seed: int
+    clock: StageClock
+    poses: dict[tuple[str, int], list[Hypothesis]] = field(default_factory=dict)
+    refined: dict[int, tuple[Hypothesis, Scored]] = field(default_factory=dict)
+
+    def poses_of(
+        self, model_id: str, view: QueryView, find: Callable[[], list[Hypothesis]]
+    ) -> list[Hypothesis]:
+        """The poses of ``model_id`` at ``view``, found once."""
+        key = (model_id, id(view))  # the searches hold their views for the whole call
+        if key not in self.poses:
+            self.poses[key] = find()
+        return self.poses[key]
+
+    def refined_of(self, hypothesis: Hypothesis, refine: Callable[[], Scored]) -> Scored:
+        """``hypothesis`` refined and scored, once; the entry keeps it alive for its id."""
+        if id(hypothesis) not in self.refined:
+            self.refined[id(hypothesis)] = (hypothesis, refine())
+        return self.refined[id(hypothesis)][1]
 
 
 class StageClock:
