@@ -43,7 +43,7 @@ DEFAULTS = {
     "verify_top": 32,
     "transfer_poses": 0,
     "transfer_models": 5,
-    "rival_models": 5,
+    "rival_models": 0,
     "rival_icp": 1,
     "rival_margin": 0.1,
     "refine": 3,

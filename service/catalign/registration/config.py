@@ -80,8 +80,8 @@ class EngineConfig(BaseModel):
     less than this probability mass (None: always ``heading_proposals``): a confident heading
     network then costs one heading's features, matching and verification instead of two; when
     the answer's confidence is below ``heading_fallback``, the query is searched again at every
-    proposed heading. 0.86x the time on the evaluation's *same* views, 0.97x on *cross* ones
-    (which fall back more often), no threshold a case worse (``docs/benchmarks.md``)."""
+    proposed heading. About 0.85x the time on the evaluation's *same* views and 0.97x on
+    *cross* ones, which fall back more often (``docs/benchmarks.md``)."""
     heading_fallback: float = Field(default=0.7, ge=0, le=1)
     """With ``heading_mass``: the confidence below which an answer found at the confident
     headings alone sends the query to a search at every proposed heading (0: never; always
@@ -124,16 +124,16 @@ class EngineConfig(BaseModel):
     (``bench/results/tradeoff-transfer.md``): off by default."""
     transfer_models: int = Field(default=5, ge=0)
     """Shortlisted models, best first, the poses are carried over to."""
-    rival_models: int = Field(default=5, ge=0)
+    rival_models: int = Field(default=0, ge=0)
     """Leading models other than the winner that its refined pose is tried on: one that fits
     the query better by ``rival_margin`` after ICP replaces it (the observed chair's own CAD
-    beaten by a near-twin; 0: none). 5 picks the own CAD in 6 more *same* views of 108 for
-    about 5 ms a query."""
+    beaten by a near-twin; 0: none). 5 picks the own CAD more often (4 to 6 % more *same*
+    views) but on 244 views of the training chairs it lost 3 right *same* poses and 9 *cross*
+    ones (``docs/evaluation.md``): off by default."""
     rival_icp: int = Field(default=1, ge=1)
     """Of those, the ones that fit best at the winner's pose that get ICP."""
     rival_margin: float = Field(default=0.1, ge=0, le=1)
-    """Fitness by which a rival must beat the winner (0.05 did as well on the evaluation's
-    views but changed the model of moved real scans more often)."""
+    """Fitness by which a rival must beat the winner."""
     refine: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
     alternatives: int = Field(default=3, ge=0)

@@ -25,9 +25,9 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
      times the model surface they cover, nudged by the layout with an up;
 
 5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
-   poses of all orientations, scored again the same way; the best wins, unless another leading
-   model fits the query clearly better at its pose (:mod:`~catalign.registration.rivals`,
-   with ``rival_models``);
+   poses of all orientations, scored again the same way; the best wins (with ``rival_models``,
+   unless another leading model fits the query clearly better at its pose:
+   :mod:`~catalign.registration.rivals`);
 6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent; an alternative is only stood upright and centred;
