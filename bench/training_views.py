@@ -32,7 +32,7 @@ from catalign.registration.config import parse_options
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.threads import limit_threads
-from catalign.training.calibration import CROSS_FOLDS, right_pose
+from catalign.training.calibration import plans, right_pose
 
 RESULTS = Path(__file__).parent / "results" / "training-views.md"
 SEED = 2000  # the calibration's views
@@ -55,13 +55,10 @@ def main() -> None:
     ids = sorted(chairs.ids("train"))
     shapes = metric_shapes(chairs, ids)
     frames = frames_of(shapes)
-    folds = [ids[k::CROSS_FOLDS] for k in range(CROSS_FOLDS)]
-    plans = [(ids, ids, "same")]
-    plans += [([i for i in ids if i not in fold], fold, "cross") for fold in folds]
     # right[setting][config] and top1[config]: one flag per view
     right: dict[str, dict[str, list[bool]]] = {"same": {}, "cross": {}}
     top1: dict[str, list[bool]] = {}
-    for library_ids, observed_ids, setting in plans:
+    for library_ids, observed_ids, setting in plans(ids):
         registrar = IndexedRegistrar(extractor, name="learned")
         registrar.prepare([LibraryShape(i, shapes[i].points) for i in library_ids])
         assert registrar.engine is not None

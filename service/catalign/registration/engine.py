@@ -174,11 +174,7 @@ class Engine:
         # them, or the confident ones); when the answer found there is weak, search again at
         # every proposed heading (the first ones' views kept).
         request = Request(config.top_k if top_k is None else top_k, estimate_scale, seed, clock)
-        first = [
-            replace(o, headings=o.headings[:count])
-            for o, count in zip(oriented.orientations, oriented.first, strict=True)
-        ]
-        searches = self._described(cloud, first, request)
+        searches = self._described(cloud, oriented.described_first, request)
         answered = self._answered(self._found(searches, request), request)
         if oriented.held_back and (answered is None or self._weak(answered[0][0])):
             searches = self._widened(searches, oriented.orientations, cloud, request)
@@ -330,9 +326,7 @@ class Engine:
                 hypothesis
                 for model_id in clock.each(search.candidates)
                 for view in views
-                for hypothesis in request.poses_of(
-                    model_id, view, lambda m=model_id, v=view: self._posed(m, v, turn, request)
-                )
+                for hypothesis in self._posed(model_id, view, turn, request)
             ]
 
         # Verify: every pose by the query it explains, the best also by coverage and layout;
@@ -361,20 +355,23 @@ class Engine:
     def _posed(
         self, model_id: str, view: QueryView, turn: np.ndarray | None, request: Request
     ) -> list[Hypothesis]:
-        """The poses of a model from its matches with the query at one heading."""
-        found = self.matcher.match(model_id, view, request.seed)
-        return self.hypothesiser.poses(
-            found, turn, estimate_scale=request.estimate_scale, seed=request.seed
-        )
+        """The poses of a model from its matches with the query at one heading (once a call)."""
+        key = (model_id, id(view))
+        if key not in request.poses:
+            found = self.matcher.match(model_id, view, request.seed)
+            request.poses[key] = self.hypothesiser.poses(
+                found, turn, estimate_scale=request.estimate_scale, seed=request.seed
+            )
+        return request.poses[key]
 
     def _refined(self, search: Search, item: Scored, request: Request) -> Scored:
         """``item``'s pose refined by ICP onto its model and scored again (once a call)."""
-
-        def refine() -> Scored:
+        key = id(item.hypothesis)
+        if key not in request.refined:
             pose = self.refiner.refine(item.hypothesis, search.keypoints)
-            return self._weighed(search, self.verifier.score(pose, search.checks))
-
-        return request.refined_of(item.hypothesis, refine)
+            scored = self._weighed(search, self.verifier.score(pose, search.checks))
+            request.refined[key] = (item.hypothesis, scored)
+        return request.refined[key][1]
 
 
 def _scored(pair: tuple[Search, Scored]) -> Scored:

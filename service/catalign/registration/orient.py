@@ -28,7 +28,7 @@ often prefers an upside-down chair.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -59,6 +59,12 @@ class Oriented:
     orientations: list[Orientation]
     floor: np.ndarray
     first: tuple[int, ...]
+
+    @property
+    def described_first(self) -> list[Orientation]:
+        """The orientations at the headings described first."""
+        pairs = zip(self.orientations, self.first, strict=True)
+        return [replace(orientation, headings=orientation.headings[:n]) for orientation, n in pairs]
 
     @property
     def held_back(self) -> bool:

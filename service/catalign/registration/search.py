@@ -75,8 +75,9 @@ def query_searches(
 class Request:
     """One call of the engine: its shortlist size ``k`` (None: every model), whether it
     estimates scale, its seed and clock, and what a second search round (more headings of the
-    same orientations) takes over from the first: each model's poses at each view, and each
-    pose's refinement, both deterministic."""
+    same orientations) takes over from the first: each model's poses at each view (by the
+    view's id: the searches hold their views for the whole call) and each pose's refinement
+    (by the pose's id; the entry keeps the pose alive), both deterministic."""
 
     k: int | None
     estimate_scale: bool
@@ -84,21 +85,6 @@ class Request:
     clock: StageClock
     poses: dict[tuple[str, int], list[Hypothesis]] = field(default_factory=dict)
     refined: dict[int, tuple[Hypothesis, Scored]] = field(default_factory=dict)
-
-    def poses_of(
-        self, model_id: str, view: QueryView, find: Callable[[], list[Hypothesis]]
-    ) -> list[Hypothesis]:
-        """The poses of ``model_id`` at ``view``, found once."""
-        key = (model_id, id(view))  # the searches hold their views for the whole call
-        if key not in self.poses:
-            self.poses[key] = find()
-        return self.poses[key]
-
-    def refined_of(self, hypothesis: Hypothesis, refine: Callable[[], Scored]) -> Scored:
-        """``hypothesis`` refined and scored, once; the entry keeps it alive for its id."""
-        if id(hypothesis) not in self.refined:
-            self.refined[id(hypothesis)] = (hypothesis, refine())
-        return self.refined[id(hypothesis)][1]
 
 
 class StageClock:

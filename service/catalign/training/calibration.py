@@ -143,6 +143,15 @@ def label(
             samples.add(evidence, right, f"{kind}/{rank}", case.shape_id)
 
 
+def plans(ids: list[str]) -> list[tuple[list[str], list[str], str]]:
+    """``(library ids, observed ids, setting)`` of the calibration's registrations: *same*
+    (every chair in the library), then each of :data:`CROSS_FOLDS` folds against a library of
+    the others (*cross*)."""
+    folds = [ids[k::CROSS_FOLDS] for k in range(CROSS_FOLDS)]
+    found = [(ids, ids, "same")]
+    return found + [([i for i in ids if i not in fold], fold, "cross") for fold in folds if fold]
+
+
 def collect(
     config: CalibrationConfig,
     shapes: dict[str, Shape],
@@ -150,14 +159,9 @@ def collect(
     progress: bool = True,
 ) -> Samples:
     """Register views of ``shapes`` in both settings and every pose mode; label the answers."""
-    ids = sorted(shapes)
-    folds = [ids[k::CROSS_FOLDS] for k in range(CROSS_FOLDS)]
-    # (library ids, observed ids, setting): same, then each fold against the others.
-    plans = [(ids, ids, "same")]
-    plans += [([i for i in ids if i not in fold], fold, "cross") for fold in folds if fold]
     frames = frames_of(shapes)
     samples = Samples()
-    for library_ids, observed_ids, setting in plans:
+    for library_ids, observed_ids, setting in plans(sorted(shapes)):
         registrar = IndexedRegistrar(extractor, name="learned")
         registrar.prepare([LibraryShape(i, shapes[i].points) for i in library_ids])
         assert registrar.engine is not None
