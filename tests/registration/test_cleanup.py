@@ -16,6 +16,7 @@ from catalign.data.views import (
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, transform
 from catalign.registration.cleanup import detached_mask, fit_floor, floor_mask
+from catalign.registration.orient import GUESSED_FLOOR_SPREAD
 
 UP = np.array([0.0, 0.0, 1.0])
 # One chair of each kind whose parts do not lie on the floor (a pedestal's base plate or sled
@@ -68,6 +69,8 @@ def test_finds_a_ring_of_floor_around_a_chair(seed: int) -> None:
     mask = floor_mask(points, UP)
     assert mask[is_floor].mean() >= 0.95
     assert mask[~is_floor].mean() <= 0.03
+    # It spreads well past the chair: found under a guessed up too.
+    assert np.array_equal(floor_mask(points, UP, min_spread=GUESSED_FLOOR_SPREAD[0]), mask)
 
 
 def test_masks_nothing_when_no_floor_is_in_view() -> None:

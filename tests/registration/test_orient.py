@@ -9,6 +9,7 @@ from catalign.data.shapes import Shape
 from catalign.data.views import Floor, camera_at, render_view, upright_rotation
 from catalign.features.orientation import Proposal
 from catalign.geometry.se3 import axis_angle, make_pose
+from catalign.registration.cleanup import floor_mask
 from catalign.registration.describe import even_headings, rotations_of
 from catalign.registration.orient import orient, snap_to_plane
 
@@ -94,6 +95,27 @@ def test_without_up_the_floor_under_a_proposal_becomes_the_first_up(box_chair: S
     # headings are proposed on the levelled cloud less its floor, two per up
     assert first.headings == (0.3, 2.0) and first.headings_proposed
     assert all(len(cloud) == (~oriented.floor).sum() for cloud in proposer.levelled)
+
+
+def test_without_up_a_chair_back_at_the_bottom_of_an_unlikely_proposal_is_no_floor(
+    box_chair: Shape,
+) -> None:
+    # Seen from behind, with up guessed along the chair's front, the backrest is the cloud's
+    # bottom, large and flat: a floor by every rule but its spread past the rest of the chair,
+    # which the second proposal's floor needs twice over.
+    pose = make_pose(upright_rotation(0.4), np.array([0.0, 0.0, -box_chair.points[:, 1].min()]))
+    camera = camera_at(np.array([0.0, 0.0, 0.4]), 2.0, 30.0, 200.0)
+    points = render_view(box_chair, pose, camera, np.random.default_rng(0))
+    front = -(pose[:3, :3] @ np.array([0.0, 0.0, 1.0]))  # the backrest is on canonical +Z
+    assert floor_mask(points, front, voxel=VOXEL).sum() > 0.3 * len(points)
+    proposer = FixedProposer([WORLD_UP, front], headings=[0.3, 2.0])
+    oriented = orient(
+        points, None, proposer, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
+    )
+    assert not oriented.floor.any()
+    assert [o.floor_level for o in oriented.orientations] == [None, None]
+    assert [o.belief for o in oriented.orientations] == [1.0, 0.5]  # the proposals' order
+    assert angle_deg(oriented.orientations[0].up, WORLD_UP) < 1.0
 
 
 @pytest.mark.parametrize(("scores", "first"), [([0.96, 0.03], 1), ([0.6, 0.35], 2)])

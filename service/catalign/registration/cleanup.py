@@ -28,6 +28,11 @@ plane is a floor only if all of these hold:
   it: the noise of a real floor puts 0.9 % there at most, a seat has its front under it
   (3.5 % and more).
 
+Under an up that was guessed, not given, a chair's backrest or side can pass all three, so
+:func:`floor_mask` takes ``min_spread``: the floor must also reach past the chair
+(:func:`spread`; the orient stage's thresholds and their measurements are in
+:mod:`~catalign.registration.orient`).
+
 The mask then holds the inliers and every point below the plane. Measured on ray-cast views of
 the 60 procedural chairs (3 per chair, camera at 1.2 to 3 m, elevation 5 to 50 degrees, depth
 noise as :class:`~catalign.data.views.DepthNoise`) with a disc of floor reaching 0.3 m beyond
@@ -138,21 +143,45 @@ class FloorFit:
     is_floor: bool
 
 
-def floor_mask(points: np.ndarray, up: np.ndarray, *, voxel: float = 0.025) -> np.ndarray:
+def floor_mask(
+    points: np.ndarray, up: np.ndarray, *, voxel: float = 0.025, min_spread: float = 0.0
+) -> np.ndarray:
     """Boolean mask (N,) of the points of a supporting floor: a plane perpendicular (within ~10
     deg) to the unit vector ``up`` at the bottom of the cloud along ``up``. All False when
     there is none.
 
     The floor's inliers (within max(1.5 cm, 2.5 sigma) of the plane) and everything below it
-    are masked; ``voxel`` is the cell the floor's area is measured in. See the module docstring
-    for the rules and their measured thresholds.
+    are masked; ``voxel`` is the cell the floor's area is measured in. With ``min_spread``, the
+    floor must also spread that many times wider than what stands on it (:func:`spread`). See
+    the module docstring for the rules and their measured thresholds.
     """
     pts = _as_cloud(points)
     fit = fit_floor(pts, up, voxel=voxel)
     if fit is None or not fit.is_floor:
         return np.zeros(len(pts), dtype=bool)
     heights = pts @ fit.normal - fit.offset
-    return (heights < fit.tol) | _floor_remnants(pts, heights, fit.normal)
+    mask = (heights < fit.tol) | _floor_remnants(pts, heights, fit.normal)
+    if min_spread > 0 and spread(pts, mask, fit.normal) < min_spread:
+        return np.zeros(len(pts), dtype=bool)
+    return mask
+
+
+def spread(points: np.ndarray, floor: np.ndarray, normal: np.ndarray) -> float:
+    """The area of the ``floor`` points' convex hull in their plane over that of the other
+    points' shadow on it (infinite when those cast none with an area).
+
+    The floor a chair stands on reaches past the chair on the sides the camera sees; a chair's
+    back or side, which a wrong guess of up puts at the bottom of the cloud, is no wider than
+    the rest of the chair seen along it.
+    """
+    plane = _plane_basis(normal)
+    areas = []
+    for part in (points[floor], points[~floor]):
+        try:
+            areas.append(ConvexHull(part @ plane.T).volume)  # a 2D hull's volume is its area
+        except (QhullError, ValueError):  # too few or collinear points: no area
+            areas.append(0.0)
+    return math.inf if areas[1] == 0 else areas[0] / areas[1]
 
 
 def _floor_remnants(points: np.ndarray, heights: np.ndarray, normal: np.ndarray) -> np.ndarray:
