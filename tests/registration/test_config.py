@@ -46,6 +46,8 @@ DEFAULTS = {
     "rival_models": 0,
     "rival_icp": 1,
     "rival_margin": 0.1,
+    "rival_turn_deg": 5.0,
+    "rival_shift_m": 0.05,
     "refine": 3,
     "alternatives": 3,
     "exact_fitness": 0.9,

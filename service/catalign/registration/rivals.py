@@ -9,6 +9,12 @@ other than the winner are fitted at the carried pose, the ``rival_icp`` that fit
 refined, and the best of those replaces the winner when its fitness beats the winner's by
 ``rival_margin``. A winner whose fitness reaches ``exact_fitness`` is taken to be the observed
 instance already and is not challenged.
+
+A rival changes the model, not the answer's pose: one whose refined pose turned more than
+``rival_turn_deg`` from the winner's, or moved its category-level origin (the bounding-box
+centre) more than ``rival_shift_m``, is not taken. Another instance that ICP slid along the
+view fits better where it does not belong: on views of the training chairs, rivals taken
+without this check lost more right poses than the models they got right.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from dataclasses import KW_ONLY, dataclass
 
 import numpy as np
 
+from catalign.geometry.se3 import rotation_error_deg, transform
 from catalign.library.index import Library
 from catalign.registration.hypothesise import Hypothesis
 from catalign.registration.refine import Refiner
@@ -34,6 +41,8 @@ class RivalCheck:
     rival_models: int
     rival_icp: int
     rival_margin: float
+    rival_turn_deg: float
+    rival_shift_m: float
     exact_fitness: float
 
     def challenger(
@@ -53,7 +62,18 @@ class RivalCheck:
         at_once = [self.refiner.fit(h, keypoints).fitness for h in carried]
         screened = [carried[i] for i in np.argsort(at_once)[::-1][: self.rival_icp]]
         refined = [self.refiner.refine(h, keypoints) for h in screened]
+        refined = [h for h in refined if self._agrees(h, winner)]
         fits = [self.refiner.fit(h, keypoints).fitness for h in refined]
         if not fits or max(fits) <= own + self.rival_margin:
             return None
         return refined[int(np.argmax(fits))]
+
+    def _agrees(self, rival: Hypothesis, winner: Hypothesis) -> bool:
+        """Whether ``rival`` poses its model where ``winner`` poses its own (module docstring)."""
+        turn = rotation_error_deg(rival.transform[:3, :3], winner.transform[:3, :3])
+        origins = [
+            transform(self.library[h.model_id].centre[None], h.transform)[0]
+            for h in (rival, winner)
+        ]
+        shift = float(np.linalg.norm(origins[0] - origins[1]))
+        return turn <= self.rival_turn_deg and shift <= self.rival_shift_m
