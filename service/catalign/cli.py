@@ -68,7 +68,7 @@ def evaluate(
         typer.Option(
             "--floor/--no-floor",
             help="Keep a ring of floor around each chair, as a segmentation that kept some floor "
-            "would (upright only).",
+            "would; the chair stands on it, and with so3 the whole view is turned at random.",
         ),
     ] = False,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
@@ -89,10 +89,6 @@ def evaluate(
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
         if pose_mode not in ("upright", "so3"):
             raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright or so3")
-        if floor and pose_mode != "upright":
-            raise ConfigError(
-                "--floor needs --pose-mode upright: a tilted chair stands on no floor"
-            )
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]

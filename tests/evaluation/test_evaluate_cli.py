@@ -116,18 +116,6 @@ def test_unknown_pose_mode_exits_2(tmp_path: Path):
     assert "unknown pose mode 'sideways'" in result.stderr
 
 
-def test_floor_with_so3_exits_2(tmp_path: Path):
-    # refused before any shape is read: the chairs folder does not even exist
-    out = tmp_path / "x.json"
-    args = ["evaluate", "--floor", "--pose-mode", "so3", "--chairs-dir", str(tmp_path / "none")]
-    result = runner.invoke(app, [*args, "--out", str(out)])
-    assert result.exit_code == 2
-    assert "--floor needs --pose-mode upright" in result.stderr
-    assert len(result.stderr.strip().splitlines()) == 1
-    assert "Traceback" not in result.output
-    assert not out.exists()
-
-
 @pytest.mark.slow
 def test_evaluate_with_floor_records_it(chairs_root: Path, tmp_path: Path):
     out = tmp_path / "floor.json"
@@ -153,8 +141,19 @@ def test_build_cases_with_floor():
         assert (beyond & near_floor).sum() > 1000  # ... plus floor around the chair
         beyond = ((a.points[:, :2] < low - 0.05) | (a.points[:, :2] > high + 0.05)).any(axis=1)
         assert beyond.sum() == 0
-    with pytest.raises(ValueError, match="a floor needs upright poses"):
-        build_cases(shapes, views=1, seed=0, pose_mode="so3", floor=True)
+
+
+def test_so3_floor_views_are_the_upright_ones_turned_at_random():
+    shapes = {"p3": procedural_shape(3)}
+    upright = build_cases(shapes, views=2, seed=5, floor=True)
+    turned = build_cases(shapes, views=2, seed=5, pose_mode="so3", floor=True)
+    tilts = []
+    for a, b in zip(upright, turned, strict=True):
+        turn = b.pose @ np.linalg.inv(a.pose)  # the scene's turn, about the world origin
+        np.testing.assert_allclose(turn[:3, 3], 0.0, atol=1e-9)
+        np.testing.assert_allclose(transform(a.points, turn), b.points, atol=1e-9)
+        tilts.append(np.degrees(np.arccos(np.clip(turn[2, 2], -1.0, 1.0))))
+    assert max(tilts) > 20.0  # really turned, not upright
 
 
 def test_missing_chairs_folder_exits_2(tmp_path: Path):

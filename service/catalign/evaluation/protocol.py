@@ -7,9 +7,10 @@ Settings, as in the paper:
 
 Every validation shape is observed ``views`` times: upright (or free SO(3)) at a random place,
 scaled to a realistic height, seen by a random camera with structured-light noise, capped at
-``max_points``. With ``floor`` every view also keeps a ring of floor around the chair (upright
-only), as a segmentation that kept some floor would. Everything derives from ``seed``, so two
-runs see the same cases.
+``max_points``. With ``floor`` every view also keeps a ring of floor around the chair, as a
+segmentation that kept some floor would; the chair then stands upright on it, and in ``so3``
+mode the whole scene is turned at random (a sensor that knows no up). Everything derives from
+``seed``, so two runs see the same cases.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from catalign.data.views import Floor, PoseMode, random_camera, random_object_po
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
+from catalign.geometry.se3 import make_pose, random_rotation, transform
 from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
 
 Setting = Literal["same", "cross"]
@@ -70,19 +72,22 @@ def build_cases(
     """``views`` noisy partial observations of every shape, all derived from ``seed``.
 
     ``floor`` keeps a ring of floor (:class:`~catalign.data.views.Floor`, default margin) in
-    every view; a chair only stands on a floor when upright, so ``so3`` is refused.
+    every view. A chair stands upright on it; in ``so3`` mode the view, floor and all, is then
+    turned by a random rotation, so its points before the turn are the ``upright`` floor view's.
     """
-    if floor and pose_mode != "upright":
-        raise ValueError(f"a floor needs upright poses, not pose mode {pose_mode!r}")
     floor_kept = Floor() if floor else None
+    placed = "upright" if floor else pose_mode  # a chair on a floor stands on it
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):
         for view in range(views):
             rng = np.random.default_rng([seed, index, view])
-            pose = random_object_pose(rng, pose_mode, height=shape.height / 2)
+            pose = random_object_pose(rng, placed, height=shape.height / 2)
             camera = random_camera(pose[:3, 3], rng)
             seen = render_view(shape, pose, camera, rng, floor=floor_kept)
             points = subsample(seen, max_points, rng)
+            if placed != pose_mode:
+                turn = make_pose(random_rotation(rng), np.zeros(3))
+                points, pose = transform(points, turn), turn @ pose
             cases.append(TestCase(f"{shape_id}/{view}", shape_id, points, pose))
     return cases
 

@@ -46,7 +46,7 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
     (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
     +Z is up (true of upright observations; in ``so3`` mode it is a wrong prior). ``floor``
-    keeps a ring of floor around every observed chair (upright only).
+    keeps a ring of floor around every observed chair (the scene turned at random in so3).
     """
     up = WORLD_UP if config.up_prior else None
     registrar = build_registrar(config.method, config.model_dir, up, config.engine)
