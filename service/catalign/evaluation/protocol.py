@@ -76,7 +76,8 @@ def build_cases(
     turned by a random rotation, so its points before the turn are the ``upright`` floor view's.
     """
     floor_kept = Floor() if floor else None
-    placed = "upright" if floor else pose_mode  # a chair on a floor stands on it
+    turned = floor and pose_mode == "so3"  # a chair on a floor stands on it; the view turns
+    placed: PoseMode = "upright" if turned else pose_mode
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):
         for view in range(views):
@@ -85,7 +86,7 @@ def build_cases(
             camera = random_camera(pose[:3, 3], rng)
             seen = render_view(shape, pose, camera, rng, floor=floor_kept)
             points = subsample(seen, max_points, rng)
-            if placed != pose_mode:
+            if turned:
                 turn = make_pose(random_rotation(rng), np.zeros(3))
                 points, pose = transform(points, turn), turn @ pose
             cases.append(TestCase(f"{shape_id}/{view}", shape_id, points, pose))
