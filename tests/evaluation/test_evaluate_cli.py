@@ -154,6 +154,16 @@ def test_so3_floor_views_are_the_upright_ones_turned_at_random():
         np.testing.assert_allclose(transform(a.points, turn), b.points, atol=1e-9)
         tilts.append(np.degrees(np.arccos(np.clip(turn[2, 2], -1.0, 1.0))))
     assert max(tilts) > 20.0  # really turned, not upright
+    for a, b in zip(upright, turned, strict=True):  # the camera turned with the scene
+        assert b.elevation_deg == pytest.approx(a.elevation_deg)
+
+
+def test_the_camera_looks_down_on_upright_chairs_and_from_anywhere_on_turned_ones():
+    shapes = {f"p{seed}": procedural_shape(seed) for seed in (3, 4, 5)}
+    upright = [c.elevation_deg for c in build_cases(shapes, views=4, seed=1)]
+    turned = [c.elevation_deg for c in build_cases(shapes, views=4, seed=1, pose_mode="so3")]
+    assert min(upright) >= 5.0 and max(upright) <= 50.0  # the camera's range over the floor
+    assert min(turned) < 0.0 < max(turned)  # some turned chairs are seen from below
 
 
 def test_missing_chairs_folder_exits_2(tmp_path: Path):

@@ -26,6 +26,7 @@ from tqdm import tqdm
 from catalign.data.shapes import Shape, SharedChairs, to_metric
 from catalign.data.views import Floor, PoseMode, random_camera, random_object_pose, render_view
 from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.geometry.se3 import make_pose, random_rotation, transform
@@ -37,12 +38,21 @@ SETTINGS: tuple[Setting, ...] = ("same", "cross")
 
 @dataclass(frozen=True)
 class TestCase:
-    """One observation with its ground truth (``pose``: observed shape -> world)."""
+    """One observation with its ground truth (``pose``: observed shape -> world) and the
+    camera's position (``eye``, world)."""
 
     case_id: str
     shape_id: str
     points: np.ndarray
     pose: np.ndarray
+    eye: np.ndarray
+
+    @property
+    def elevation_deg(self) -> float:
+        """The camera's elevation over the chair's seat plane, in the chair's own frame:
+        negative when the camera sees the chair from below."""
+        towards = self.pose[:3, :3].T @ (self.eye - self.pose[:3, 3])
+        return float(np.degrees(np.arcsin(towards @ MODEL_UP / np.linalg.norm(towards))))
 
 
 @dataclass(frozen=True)
@@ -85,11 +95,11 @@ def build_cases(
             pose = random_object_pose(rng, placed, height=shape.height / 2)
             camera = random_camera(pose[:3, 3], rng)
             seen = render_view(shape, pose, camera, rng, floor=floor_kept)
-            points = subsample(seen, max_points, rng)
+            points, eye = subsample(seen, max_points, rng), camera.eye
             if turned:
                 turn = make_pose(random_rotation(rng), np.zeros(3))
-                points, pose = transform(points, turn), turn @ pose
-            cases.append(TestCase(f"{shape_id}/{view}", shape_id, points, pose))
+                points, pose, eye = transform(points, turn), turn @ pose, turn[:3, :3] @ eye
+            cases.append(TestCase(f"{shape_id}/{view}", shape_id, points, pose, eye))
     return cases
 
 
