@@ -153,6 +153,12 @@ def train(
         ),
     ] = "upright",
     procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
+    view_so3_share: Annotated[
+        float,
+        typer.Option(
+            min=0, max=1, help="Share of views of the chair in any rotation (from below)."
+        ),
+    ] = 0.0,
     learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
     seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = 0,
     validate_every: Annotated[int, typer.Option(min=1, help="Steps between validations.")] = 100,
@@ -184,6 +190,7 @@ def train(
             voxel_size=voxel_size,
             procedural=procedural,
             rotation=rotation,
+            view_so3_share=view_so3_share,
             learning_rate=learning_rate,
             seed=seed,
             validate_every=validate_every,

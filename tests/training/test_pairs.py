@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from catalign.data.shapes import procedural_shape
+from catalign.data.shapes import Shape, procedural_shape
 from catalign.training.pairs import (
     MODEL_UP,
     YAW_BINS,
@@ -103,3 +103,21 @@ def test_binned_rotations_keep_the_heading_within_half_a_bin(mode: str) -> None:
     # the small tilt moves the horizontal heading by a fraction of a degree at most
     assert np.max(np.abs(headings)) <= half_bin + 1.0
     assert np.max(np.abs(headings)) >= 0.9 * half_bin
+
+
+def _plate() -> Shape:
+    """A level plate 0.6 m wide and 4 cm thick: a camera above it sees only its top face."""
+    rng = np.random.default_rng(0)
+    xz = rng.uniform(-0.3, 0.3, size=(4_000, 2))
+    faces = [np.column_stack([xz[:, 0], np.full(len(xz), y), xz[:, 1]]) for y in (0.02, -0.02)]
+    return Shape("plate", np.concatenate(faces))
+
+
+@pytest.mark.parametrize(("share", "from_below"), [(0.0, False), (1.0, True)])
+def test_views_of_a_chair_in_any_rotation_see_it_from_below(share: float, from_below: bool) -> None:
+    sampler = PairSampler({"plate": _plate()}, {"plate": []}, voxel_size=0.03, view_so3_share=share)
+    heights = [  # the seen face's height in the plate's own frame
+        sampler.same_instance("plate", np.random.default_rng(seed)).a.aligned[:, 1].mean()
+        for seed in range(12)
+    ]
+    assert (min(heights) < 0) == from_below, heights

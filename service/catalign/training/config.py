@@ -29,6 +29,9 @@ class TrainConfig(BaseModel):
     tau_ncc: float = Field(0.04, gt=0)
     rotation: Literal["upright", "yaw-bin", "yaw-quarter", "so3"] = "upright"
     procedural: int = Field(0, ge=0, description="procedural chairs added to the training shapes")
+    view_so3_share: float = Field(
+        0.0, ge=0, le=1, description="views of the chair in any rotation (seen from below, aside)"
+    )
     seed: int = 0
     validate_every: int = Field(100, ge=1)
     checkpoint_every: int = Field(50, ge=1)

@@ -98,6 +98,7 @@ def train(
         voxel_size=config.voxel_size,
         tau_ncc=config.tau_ncc,
         rotation=config.rotation,
+        view_so3_share=config.view_so3_share,
     )
     val_pairs = validation_pairs(sampler, val_ids, config.validation_pairs, config.seed)
     taus = {"same": sampler.tau, "cross": sampler.tau_ncc}
@@ -189,7 +190,8 @@ def _resume(config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.
     state = load_state(config.out)
     if state is None:
         return 0
-    saved = state["train_config"]
+    # A setting added after the run was saved counts at its default.
+    saved = _plain(TrainConfig(**state["train_config"]))
     mine = _plain(config)
     differs = {k for k in mine if k not in ("out", "threads") and saved.get(k) != mine[k]}
     if differs:

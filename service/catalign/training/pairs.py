@@ -113,6 +113,7 @@ class PairSampler:
         cad_points: int = 10_000,
         view_probability: float = 0.8,
         rotation: RotationMode = "upright",
+        view_so3_share: float = 0.0,
     ) -> None:
         self.shapes = shapes
         self.neighbours = neighbours
@@ -124,6 +125,7 @@ class PairSampler:
         self.cad_points = cad_points
         self.view_probability = view_probability
         self.rotation = rotation
+        self.view_so3_share = view_so3_share
         self.frames = {i: NCCFrame.fit(s.points) for i, s in shapes.items()}
 
     def sample(self, kind: PairKind, shape_id: str, rng: np.random.Generator) -> PairSample:
@@ -156,10 +158,13 @@ class PairSampler:
         )
 
     def _view(self, shape_id: str, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A noisy partial view of the shape standing upright, carried back into the shape's
-        canonical frame (the augmentation rotation then places it)."""
+        """A noisy partial view of the shape, carried back into the shape's canonical frame (the
+        augmentation rotation then places it). The shape stands upright, so the camera looks
+        down on it, except for ``view_so3_share`` of the views, where it lies in any rotation:
+        a low or hand-held sensor sees a chair from below or from its side."""
         shape = self.shapes[shape_id]
-        pose = random_object_pose(rng, "upright", height=shape.height / 2)
+        so3 = self.view_so3_share > 0 and rng.random() < self.view_so3_share
+        pose = random_object_pose(rng, "so3" if so3 else "upright", height=shape.height / 2)
         camera = random_camera(pose[:3, 3], rng)
         view = transform(
             subsample(render_view(shape, pose, camera, rng), 20_000, rng), invert(pose)
