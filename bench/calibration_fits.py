@@ -33,8 +33,9 @@ from catalign.data.shapes import ProceduralChairs, SharedChairs
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases, frames_of, metric_shapes
 from catalign.features.extractor import LearnedExtractor
+from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.base import LibraryShape
-from catalign.registration.confidence import Calibrator
+from catalign.registration.confidence import Calibrator, find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.threads import limit_threads
 from catalign.training.calibration import (
@@ -118,6 +119,10 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
+    if not args.samples.is_file():
+        calibrator = find_calibrator(DEFAULT_MODEL_DIR)
+        command = calibrator.card.get("command", "catalign calibrate") if calibrator else ""
+        parser.error(f"no calibration samples at {args.samples}: run `{command}` (it writes them)")
     limit_threads(args.threads, total=args.threads)
 
     extractor = LearnedExtractor()

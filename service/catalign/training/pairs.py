@@ -163,6 +163,7 @@ class PairSampler:
         down on it, except for ``view_so3_share`` of the views, where it lies in any rotation:
         a low or hand-held sensor sees a chair from below or from its side."""
         shape = self.shapes[shape_id]
+        # No draw at share 0: runs without the option see the pairs they always did.
         so3 = self.view_so3_share > 0 and rng.random() < self.view_so3_share
         pose = random_object_pose(rng, "so3" if so3 else "upright", height=shape.height / 2)
         camera = random_camera(pose[:3, 3], rng)
