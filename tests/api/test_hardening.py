@@ -76,6 +76,23 @@ def test_one_far_point_is_set_aside_and_counted(
     assert answer.json()["model_id"] == "proc-0001"
 
 
+@pytest.mark.parametrize("up", [UP, None])
+def test_a_plane_with_a_few_points_under_it_gets_an_answer_not_a_500(
+    client: httpx.Client, panel_with_a_leg: np.ndarray, up: str | None
+) -> None:
+    """Every rule of a floor holds for the panel, but nothing stands on it: it is no floor,
+    and the cloud is registered (a 500 when the whole cloud was set aside as floor)."""
+    params = {} if up is None else {"up": up}
+    answer = client.post(
+        "/register", content=binary(panel_with_a_leg), params=params, headers=_BINARY
+    )
+    assert answer.status_code in (200, 422), answer.text
+    if answer.status_code == 200:
+        assert answer.json()["points_set_aside"] < len(panel_with_a_leg) // 2
+    else:
+        assert "no pose fits" in answer.json()["error"]["message"]
+
+
 def test_a_volume_of_random_points_is_refused_quickly(client: httpx.Client) -> None:
     """500,000 points in a 2 m cube (6 MB, under max_points): minutes and 10 GB before."""
     cube = np.random.default_rng(0).uniform(0.0, 2.0, size=(500_000, 3))

@@ -149,3 +149,24 @@ def test_rotations_level_the_up_and_turn_by_the_heading(heading: float) -> None:
     levelled_model = rotation @ np.linalg.inv(rotation) @ axis_angle(MODEL_UP, heading)
     unturned = axis_angle(MODEL_UP, -heading) @ levelled_model
     assert np.allclose(unturned, np.eye(3))
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_a_plane_with_nothing_standing_on_it_is_no_floor(
+    panel_with_a_leg: np.ndarray, given: bool
+) -> None:
+    points = panel_with_a_leg
+    assert floor_mask(points, WORLD_UP, voxel=VOXEL).all()  # every floor rule holds
+    proposer = FixedProposer([WORLD_UP, tilted(WORLD_UP, 90.0)], headings=[0.3, 2.0])
+    oriented = orient(
+        points,
+        WORLD_UP if given else None,
+        proposer,
+        headings=8,
+        up_proposals=3,
+        heading_proposals=2,
+        voxel=VOXEL,
+        min_voxels=50,
+    )
+    assert not oriented.floor.any()
+    assert all(len(cloud) == len(points) for cloud in proposer.levelled)

@@ -166,6 +166,7 @@ class Engine:
                 heading_proposals=config.heading_proposals,
                 heading_mass=config.heading_mass,
                 voxel=voxel,
+                min_voxels=config.min_points,
             )
             cloud = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
             cloud = cloud.without(detached_mask(cloud.points), voxel, config.min_points)

@@ -18,7 +18,9 @@ Proposed ups are snapped to the largest plane nearly perpendicular to them
 few. The **floor** is found here too, because where the floor is depends on which way is up
 (:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
 proposed up that has a floor beneath the cloud and spreads past the chair (a chair's back or
-side is flat too: :data:`GUESSED_FLOOR_SPREAD`). A floor is the best witness of up there is, so
+side is flat too: :data:`GUESSED_FLOOR_SPREAD`), and, given or guessed, that leaves an object
+standing on it (``min_voxels`` occupied voxels, what a query needs: a flat backrest seen from
+behind, with a few points beyond it, is all plane). A floor is the best witness of up there is, so
 that proposal's up becomes the floor's normal and is tried first. Its points are set aside,
 and its level goes on to the category fit (the chair stands on it).
 
@@ -34,11 +36,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from catalign.features.orientation import OrientationProposer, Proposal
-from catalign.geometry.sampling import voxel_downsample
+from catalign.geometry.sampling import voxel_downsample, voxel_keys
 from catalign.registration.base import Orientation
 from catalign.registration.cleanup import cone_planes, floor_mask
 from catalign.registration.describe import even_headings
 from catalign.registration.gravity import leveller
+from catalign.registration.validation import MIN_VOXELS
 
 # Up proposals snap to the largest plane within this angle of them (module docstring) ...
 SNAP_DEG = 15.0
@@ -90,6 +93,7 @@ def orient(
     up_proposals: int,
     heading_proposals: int | None,
     voxel: float,
+    min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
@@ -114,6 +118,8 @@ def orient(
             continue
         spread = 0.0 if given else GUESSED_FLOOR_SPREAD[min(index, 1)]
         floor = floor_mask(points, candidate, voxel=voxel, min_spread=spread)
+        if floor.any() and _occupied(points[~floor], voxel) < min_voxels:
+            floor[:] = False  # nothing stands on it: no floor
         if floor.any():
             if not given:  # the floor's normal is the best up there is: tried first
                 del ups[index], beliefs[index]
@@ -140,6 +146,11 @@ def orient(
         ]
         first = tuple(len(o.headings) for o in orientations)
     return Oriented(orientations, floor, first)
+
+
+def _occupied(points: np.ndarray, voxel: float) -> int:
+    """How many voxels of size ``voxel`` ``points`` occupy."""
+    return len(np.unique(voxel_keys(points, voxel), axis=0))
 
 
 def _confident(proposals: list[Proposal], mass: float | None) -> int:
