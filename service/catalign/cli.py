@@ -52,7 +52,13 @@ def evaluate(
         typer.Option(min=1, help="Cap on observed shapes and on each library (quick runs)."),
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the test cases and of RANSAC.")] = 0,
-    pose_mode: Annotated[str, typer.Option(help="upright (yaw only) or so3.")] = "upright",
+    pose_mode: Annotated[
+        str,
+        typer.Option(
+            help="upright (yaw only), so3 (the chair in any rotation) or turned (the upright "
+            "view turned at random: a sensor without IMU)."
+        ),
+    ] = "upright",
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -60,7 +66,7 @@ def evaluate(
         bool | None,
         typer.Option(
             "--up-prior/--no-up-prior",
-            help="Tell the method that world +Z is up (default: on for upright, off for so3).",
+            help="Tell the method that world +Z is up (default: on for upright only).",
         ),
     ] = None,
     floor: Annotated[
@@ -76,6 +82,7 @@ def evaluate(
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
     from catalign.data.shapes import SharedChairs
+    from catalign.evaluation.protocol import VIEW_MODES
     from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
     from catalign.registration.config import parse_options
     from catalign.registration.methods import check_method
@@ -87,8 +94,8 @@ def evaluate(
         for name in settings:
             if name not in ("same", "cross"):
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
-        if pose_mode not in ("upright", "so3"):
-            raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright or so3")
+        if pose_mode not in VIEW_MODES:
+            raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright, so3 or turned")
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]

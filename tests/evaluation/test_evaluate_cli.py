@@ -143,10 +143,13 @@ def test_build_cases_with_floor():
         assert beyond.sum() == 0
 
 
-def test_so3_floor_views_are_the_upright_ones_turned_at_random():
+@pytest.mark.parametrize(
+    ("pose_mode", "floor"), [("turned", False), ("turned", True), ("so3", True)]
+)
+def test_turned_views_are_the_upright_ones_turned_at_random(pose_mode: str, floor: bool):
     shapes = {"p3": procedural_shape(3)}
-    upright = build_cases(shapes, views=2, seed=5, floor=True)
-    turned = build_cases(shapes, views=2, seed=5, pose_mode="so3", floor=True)
+    upright = build_cases(shapes, views=2, seed=5, floor=floor)
+    turned = build_cases(shapes, views=2, seed=5, pose_mode=pose_mode, floor=floor)
     tilts = []
     for a, b in zip(upright, turned, strict=True):
         turn = b.pose @ np.linalg.inv(a.pose)  # the scene's turn, about the world origin
@@ -164,6 +167,14 @@ def test_the_camera_looks_down_on_upright_chairs_and_from_anywhere_on_turned_one
     turned = [c.elevation_deg for c in build_cases(shapes, views=4, seed=1, pose_mode="so3")]
     assert min(upright) >= 5.0 and max(upright) <= 50.0  # the camera's range over the floor
     assert min(turned) < 0.0 < max(turned)  # some turned chairs are seen from below
+
+
+def test_unknown_pose_mode_exits_2_with_the_modes(chairs_root: Path):
+    result = runner.invoke(
+        app, ["evaluate", "--pose-mode", "tilted", "--chairs-dir", str(chairs_root)]
+    )
+    assert result.exit_code == 2
+    assert "upright, so3 or turned" in result.stderr
 
 
 def test_missing_chairs_folder_exits_2(tmp_path: Path):

@@ -5,12 +5,19 @@ Settings, as in the paper:
 * **same**: the library holds the validation shapes, so the observed instance's CAD is in it;
 * **cross**: the library holds the training shapes, so the observed instance is never in it.
 
-Every validation shape is observed ``views`` times: upright (or free SO(3)) at a random place,
-scaled to a realistic height, seen by a random camera with structured-light noise, capped at
-``max_points``. With ``floor`` every view also keeps a ring of floor around the chair, as a
-segmentation that kept some floor would; the chair then stands upright on it, and in ``so3``
-mode the whole scene is turned at random (a sensor that knows no up). Everything derives from
-``seed``, so two runs see the same cases.
+Every validation shape is observed ``views`` times at a random place, scaled to a realistic
+height, seen by a random camera with structured-light noise, capped at ``max_points``, in one
+of three view modes (:data:`VIEW_MODES`):
+
+* ``upright``: the chair stands with a random yaw, world +Z up;
+* ``so3``: the chair in any rotation, so the camera may see it from below (a chair knocked
+  over, or on a shelf above the sensor);
+* ``turned``: the ``upright`` view, then the whole view turned by a random rotation: a sensor
+  without an IMU, held at any angle, looking at a standing chair.
+
+With ``floor`` every view also keeps a ring of floor around the chair, as a segmentation that
+kept some floor would; the chair then stands upright on it, so ``so3`` with a floor is
+``turned``. Everything derives from ``seed``, so two runs see the same cases.
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ from catalign.registration.base import LibraryShape, Registrar, RegistrationResu
 
 Setting = Literal["same", "cross"]
 SETTINGS: tuple[Setting, ...] = ("same", "cross")
+ViewMode = Literal["upright", "so3", "turned"]
+VIEW_MODES: tuple[ViewMode, ...] = ("upright", "so3", "turned")
 
 
 @dataclass(frozen=True)
@@ -75,18 +84,21 @@ def build_cases(
     shapes: dict[str, Shape],
     views: int,
     seed: int,
-    pose_mode: PoseMode = "upright",
+    pose_mode: ViewMode = "upright",
     max_points: int = 20_000,
     floor: bool = False,
 ) -> list[TestCase]:
     """``views`` noisy partial observations of every shape, all derived from ``seed``.
 
-    ``floor`` keeps a ring of floor (:class:`~catalign.data.views.Floor`, default margin) in
-    every view. A chair stands upright on it; in ``so3`` mode the view, floor and all, is then
-    turned by a random rotation, so its points before the turn are the ``upright`` floor view's.
+    A ``turned`` view is the ``upright`` one turned by a random rotation: its points before the
+    turn are the ``upright`` view's. ``floor`` keeps a ring of floor
+    (:class:`~catalign.data.views.Floor`, default margin) in every view; a chair stands upright
+    on it, so an ``so3`` view with a floor is a ``turned`` one.
     """
+    if pose_mode not in VIEW_MODES:
+        raise ValueError(f"unknown view mode {pose_mode!r}; expected one of {VIEW_MODES}")
     floor_kept = Floor() if floor else None
-    turned = floor and pose_mode == "so3"  # a chair on a floor stands on it; the view turns
+    turned = pose_mode == "turned" or (floor and pose_mode == "so3")
     placed: PoseMode = "upright" if turned else pose_mode
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):

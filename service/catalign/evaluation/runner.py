@@ -11,9 +11,10 @@ from pathlib import Path
 from typing import Any
 
 from catalign.data.shapes import SharedChairs
-from catalign.data.views import WORLD_UP, PoseMode
+from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import (
     Setting,
+    ViewMode,
     build_cases,
     frames_of,
     metric_shapes,
@@ -33,7 +34,7 @@ class EvaluationConfig:
     views: int = 2
     max_shapes: int | None = None
     seed: int = 0
-    pose_mode: PoseMode = "upright"
+    pose_mode: ViewMode = "upright"
     model_dir: Path | None = None
     up_prior: bool = True
     floor: bool = False
@@ -45,8 +46,9 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
 
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
     (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
-    +Z is up (true of upright observations; in ``so3`` mode it is a wrong prior). ``floor``
-    keeps a ring of floor around every observed chair (the scene turned at random in so3).
+    +Z is up (true of upright observations; in ``so3`` and ``turned`` modes it is a wrong
+    prior). ``floor`` keeps a ring of floor around every observed chair (the scene turned at
+    random in so3).
     """
     up = WORLD_UP if config.up_prior else None
     registrar = build_registrar(config.method, config.model_dir, up, config.engine)
