@@ -157,6 +157,7 @@ def test_a_plane_with_nothing_standing_on_it_is_no_floor(
 ) -> None:
     points = panel_with_a_leg
     assert floor_mask(points, WORLD_UP, voxel=VOXEL).all()  # every floor rule holds
+    assert not floor_mask(points, WORLD_UP, voxel=VOXEL, min_standing=50).any()
     proposer = FixedProposer([WORLD_UP, tilted(WORLD_UP, 90.0)], headings=[0.3, 2.0])
     oriented = orient(
         points,

@@ -42,6 +42,11 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.floor(points / voxel_size).astype(np.int64)
 
 
+def occupied_voxels(points: np.ndarray, voxel_size: float) -> int:
+    """How many voxels of ``voxel_size`` the points occupy."""
+    return len(np.unique(voxel_keys(points, voxel_size), axis=0))
+
+
 def voxel_grid(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Occupied voxels of a cloud: ``(keys (M,3) int64 sorted, centroids (M,3), inverse (N,))``.
 

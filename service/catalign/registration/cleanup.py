@@ -31,7 +31,9 @@ plane is a floor only if all of these hold:
 Under an up that was guessed, not given, a chair's backrest or side can pass all three, so
 :func:`floor_mask` takes ``min_spread``: the floor must also reach past the chair
 (:func:`spread`; the orient stage's thresholds and their measurements are in
-:mod:`~catalign.registration.orient`).
+:mod:`~catalign.registration.orient`). And a floor has an object standing on it: with
+``min_standing``, the points above it must occupy that many voxels (a flat backrest seen face
+on, with a few points beyond it, is all plane and passes every other rule).
 
 The mask then holds the inliers and every point below the plane. Measured on ray-cast views of
 the 60 procedural chairs (3 per chair, camera at 1.2 to 3 m, elevation 5 to 50 degrees, depth
@@ -72,6 +74,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from catalign.errors import InvalidInputError
+from catalign.geometry.sampling import occupied_voxels
 from catalign.registration.validation import MAX_RANGE_M
 
 # Fewer points than this: nothing to clean, both masks are all False.
@@ -144,7 +147,12 @@ class FloorFit:
 
 
 def floor_mask(
-    points: np.ndarray, up: np.ndarray, *, voxel: float = 0.025, min_spread: float = 0.0
+    points: np.ndarray,
+    up: np.ndarray,
+    *,
+    voxel: float = 0.025,
+    min_spread: float = 0.0,
+    min_standing: int = 0,
 ) -> np.ndarray:
     """Boolean mask (N,) of the points of a supporting floor: a plane perpendicular (within ~10
     deg) to the unit vector ``up`` at the bottom of the cloud along ``up``. All False when
@@ -152,8 +160,9 @@ def floor_mask(
 
     The floor's inliers (within max(1.5 cm, 2.5 sigma) of the plane) and everything below it
     are masked; ``voxel`` is the cell the floor's area is measured in. With ``min_spread``, the
-    floor must also spread that many times wider than what stands on it (:func:`spread`). See
-    the module docstring for the rules and their measured thresholds.
+    floor must also spread that many times wider than what stands on it (:func:`spread`); with
+    ``min_standing``, what stands on it must occupy that many ``voxel`` cells. See the module
+    docstring for the rules and their measured thresholds.
     """
     pts = _as_cloud(points)
     fit = fit_floor(pts, up, voxel=voxel)
@@ -161,6 +170,8 @@ def floor_mask(
         return np.zeros(len(pts), dtype=bool)
     heights = pts @ fit.normal - fit.offset
     mask = (heights < fit.tol) | _floor_remnants(pts, heights, fit.normal)
+    if occupied_voxels(pts[~mask], voxel) < min_standing:
+        return np.zeros(len(pts), dtype=bool)
     if min_spread > 0 and spread(pts, mask, fit.normal) < min_spread:
         return np.zeros(len(pts), dtype=bool)
     return mask

@@ -18,11 +18,10 @@ Proposed ups are snapped to the largest plane nearly perpendicular to them
 few. The **floor** is found here too, because where the floor is depends on which way is up
 (:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
 proposed up that has a floor beneath the cloud and spreads past the chair (a chair's back or
-side is flat too: :data:`GUESSED_FLOOR_SPREAD`), and, given or guessed, that leaves an object
-standing on it (``min_voxels`` occupied voxels, what a query needs: a flat backrest seen from
-behind, with a few points beyond it, is all plane). A floor is the best witness of up there is, so
-that proposal's up becomes the floor's normal and is tried first. Its points are set aside,
-and its level goes on to the category fit (the chair stands on it).
+side is flat too: :data:`GUESSED_FLOOR_SPREAD`), and, given or guessed, that leaves a query's
+worth of object standing on it (``min_voxels`` occupied voxels). A floor is the best witness
+of up there is, so that proposal's up becomes the floor's normal and is tried first. Its
+points are set aside, and its level goes on to the category fit (the chair stands on it).
 
 Every orientation carries the belief in its up: the proposal's probability mass, 1 for a given
 up or a floor. The engine weighs verification scores by it, since verification alone too
@@ -36,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from catalign.features.orientation import OrientationProposer, Proposal
-from catalign.geometry.sampling import voxel_downsample, voxel_keys
+from catalign.geometry.sampling import voxel_downsample
 from catalign.registration.base import Orientation
 from catalign.registration.cleanup import cone_planes, floor_mask
 from catalign.registration.describe import even_headings
@@ -117,9 +116,9 @@ def orient(
         if candidate is None:
             continue
         spread = 0.0 if given else GUESSED_FLOOR_SPREAD[min(index, 1)]
-        floor = floor_mask(points, candidate, voxel=voxel, min_spread=spread)
-        if floor.any() and _occupied(points[~floor], voxel) < min_voxels:
-            floor[:] = False  # nothing stands on it: no floor
+        floor = floor_mask(
+            points, candidate, voxel=voxel, min_spread=spread, min_standing=min_voxels
+        )
         if floor.any():
             if not given:  # the floor's normal is the best up there is: tried first
                 del ups[index], beliefs[index]
@@ -146,11 +145,6 @@ def orient(
         ]
         first = tuple(len(o.headings) for o in orientations)
     return Oriented(orientations, floor, first)
-
-
-def _occupied(points: np.ndarray, voxel: float) -> int:
-    """How many voxels of size ``voxel`` ``points`` occupy."""
-    return len(np.unique(voxel_keys(points, voxel), axis=0))
 
 
 def _confident(proposals: list[Proposal], mass: float | None) -> int:

@@ -40,7 +40,7 @@ from numbers import Real
 import numpy as np
 
 from catalign.errors import DegenerateInputError, InvalidInputError
-from catalign.geometry.sampling import voxel_downsample, voxel_keys
+from catalign.geometry.sampling import occupied_voxels, voxel_downsample
 
 # A principal spread below this share of the largest one is flat relative to the cloud's size.
 # Ray-cast views of procedural chairs (seat, back and legs) have ratios of 0.34 (second axis)
@@ -95,7 +95,7 @@ class CheckedCloud:
         aside; refused like any cloud when fewer than ``min_points`` or more than
         ``max_voxels`` (what the features may describe) voxels remain."""
         kept = self.points[~mask] if mask.any() else self.points
-        voxels = len(np.unique(voxel_keys(kept, voxel_size), axis=0)) if mask.any() else self.voxels
+        voxels = occupied_voxels(kept, voxel_size) if mask.any() else self.voxels
         if voxels < min_points:
             raise DegenerateInputError(
                 f"after setting aside {int(mask.sum())} points of floor or of detached clusters, "
