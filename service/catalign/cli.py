@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from catalign.cli_support import EngineOptions, exit_on_error
+from catalign.cli_support import EngineOptions, exit_on_error, options_to
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
 
@@ -178,36 +178,30 @@ def train(
     ] = None,
 ) -> None:
     """Train the feature extractor; an interrupted run continues from its last checkpoint."""
-    from pydantic import ValidationError
-
     from catalign.data.shapes import SharedChairs
     from catalign.training.config import TrainConfig
     from catalign.training.loop import train as run_training
     from catalign.training.loop import training_shapes
 
-    try:
-        config = TrainConfig(
-            out=out,
-            model=model,
-            curriculum=curriculum,
-            loss=loss,
-            stage1_steps=stage1_steps,
-            stage2_steps=stage2_steps,
-            batch_size=batch_size,
-            voxel_size=voxel_size,
-            procedural=procedural,
-            rotation=rotation,
-            view_so3_share=view_so3_share,
-            learning_rate=learning_rate,
-            seed=seed,
-            validate_every=validate_every,
-            init_from=init_from,
-            threads=threads,
-        )
-    except ValidationError as error:
-        first = error.errors()[0]
-        typer.echo(f"error: --{first['loc'][0]}: {first['msg']}", err=True)
-        raise typer.Exit(code=2) from None
+    config = options_to(
+        TrainConfig,
+        out=out,
+        model=model,
+        curriculum=curriculum,
+        loss=loss,
+        stage1_steps=stage1_steps,
+        stage2_steps=stage2_steps,
+        batch_size=batch_size,
+        voxel_size=voxel_size,
+        procedural=procedural,
+        rotation=rotation,
+        view_so3_share=view_so3_share,
+        learning_rate=learning_rate,
+        seed=seed,
+        validate_every=validate_every,
+        init_from=init_from,
+        threads=threads,
+    )
     with exit_on_error():
         shapes, val_ids = training_shapes(config, SharedChairs(chairs_dir))
         card = run_training(config, shapes, val_ids)
@@ -227,6 +221,9 @@ def train_orientation(
     seed: Annotated[int, typer.Option(help="Seed of views, samples and initial weights.")] = 0,
     threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = 2,
     learning_rate: Annotated[float, typer.Option(help="Peak learning rate.")] = 2e-3,
+    up_frame: Annotated[
+        str, typer.Option(help="Frame the up network sees a view in: view or principal.")
+    ] = "view",
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a longer schedule).")
     ] = None,
@@ -236,9 +233,11 @@ def train_orientation(
 ) -> None:
     """Train the orientation proposal networks (up and heading) on views of training chairs."""
     from catalign.data.shapes import SharedChairs
+    from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
     from catalign.training.orientation import OrientationConfig, run
 
-    config = OrientationConfig(
+    config = options_to(
+        OrientationConfig,
         out=out,
         steps=steps,
         batch_size=batch_size,
@@ -247,14 +246,15 @@ def train_orientation(
         seed=seed,
         threads=threads,
         learning_rate=learning_rate,
+        up_frame=up_frame,
         init_from=init_from,
     )
     with exit_on_error():
         card = run(config, SharedChairs(chairs_dir))
     typer.echo(json.dumps(card["held_out_accuracy"], indent=2))
     typer.echo(
-        f"orientation model written to {out} (ship it: copy its orientation.* files "
-        "to model_store/orientation/)"
+        f"orientation model written to {out} (ship it: copy its {WEIGHTS_FILE} and "
+        f"{CARD_FILE} to model_store/orientation/)"
     )
 
 

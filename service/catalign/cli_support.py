@@ -8,13 +8,16 @@ its traceback.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 import typer
+from pydantic import BaseModel, ValidationError
 
 from catalign.errors import CatalignError
+
+Config = TypeVar("Config", bound=BaseModel)
 
 # ``--engine FIELD=VALUE`` (repeatable): EngineConfig fields, for the commands that take them.
 EngineOptions = Annotated[
@@ -34,4 +37,16 @@ def exit_on_error() -> Iterator[None]:
         yield
     except CatalignError as error:
         typer.echo(f"error: {error}", err=True)
+        raise typer.Exit(code=2) from None
+
+
+def options_to(config: Callable[..., Config], **options: object) -> Config:
+    """``config(**options)``; when a value is refused, print which option and why (``error:
+    --up-frame: ...``) and exit with code 2."""
+    try:
+        return config(**options)
+    except ValidationError as error:
+        first = error.errors()[0]
+        option = "--" + str(first["loc"][0]).replace("_", "-")
+        typer.echo(f"error: {option}: {first['msg']}", err=True)
         raise typer.Exit(code=2) from None

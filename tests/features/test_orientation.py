@@ -20,6 +20,7 @@ from catalign.features.orientation import (
     load_orientation,
     occupancy_grids,
     peaks,
+    principal_frames,
 )
 from catalign.geometry.se3 import random_rotation
 from catalign.training.orientation import (
@@ -68,19 +69,41 @@ def test_peaks_are_distinct_and_refined() -> None:
     assert angle > 20.0  # not the first peak again (its best bin is beyond 30 degrees)
 
 
-def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path) -> None:
+def test_principal_frames_are_the_four_signings_of_the_principal_axes() -> None:
+    rng = np.random.default_rng(0)
+    turn = random_rotation(rng)
+    points = (rng.normal(size=(4000, 3)) * [0.5, 0.2, 0.05]) @ turn.T + [3.0, -1.0, 2.0]
+    frames = principal_frames(points)
+    assert frames.shape == (4, 3, 3)
+    for frame in frames:
+        assert np.allclose(frame.T @ frame, np.eye(3)) and np.isclose(np.linalg.det(frame), 1.0)
+        spread = np.cov((points @ frame).T)
+        assert np.allclose(spread, np.diag(np.diag(spread)), atol=1e-3)
+        assert spread[0, 0] > spread[1, 1] > spread[2, 2]
+        # The widest axis is the one the cloud was stretched along, up to its sign.
+        assert abs(frame[:, 0] @ turn[:, 0]) > 0.99
+    signs = np.sign(np.einsum("kij,ij->kj", frames, frames[0]))
+    assert sorted(map(tuple, signs)) == sorted([(1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)])
+
+
+@pytest.mark.parametrize("up_frame", ["view", "principal"])
+def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path, up_frame: str) -> None:
     shapes = [procedural_shape(seed) for seed in (0, 1)]
     views = render_views(
         shapes, 3, seed=0, view_points=256, so3_share=0.5, floor_share=0.5, progress=False
     )
     assert views.points.shape == (6, 256, 3)
-    config = OrientationConfig(steps=3, batch_size=4, min_points=64, out=tmp_path / "run")
+    config = OrientationConfig(
+        steps=3, batch_size=4, min_points=64, up_frame=up_frame, out=tmp_path / "run"
+    )
     card = train_orientation(config, views, held_out=views, progress=False)
 
     assert (tmp_path / "run" / WEIGHTS_FILE).is_file()
     stored = json.loads((tmp_path / "run" / CARD_FILE).read_text())
     assert stored["sha256"] == card["sha256"]
     assert stored["training"]["steps"] == 3
+    assert stored["architecture"]["up_frame"] == up_frame
+    assert f"--up-frame {up_frame}" in stored["command"] or up_frame == "view"
     assert set(stored["held_out_accuracy"]) == {
         "up_top1",
         "up_top3",
@@ -93,13 +116,15 @@ def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path) -> None:
     ups = proposer.ups(points, 3)
     assert len(ups) == 3
     assert all(np.isclose(np.linalg.norm(p.value), 1.0) for p in ups)
-    assert ups[0].score >= ups[1].score >= ups[2].score
+    # Each score is the probability mass of its own peak (an untrained net's are near even).
+    assert all(p.score > 0 for p in ups) and sum(p.score for p in ups) <= 1.0 + 1e-9
     headings = proposer.headings([points, points[:100]], 2)
     assert [len(h) for h in headings] == [2, 2]
     assert all(-np.pi <= p.value <= np.pi for h in headings for p in h)
 
 
-def test_a_replaced_weights_file_is_refused(tmp_path: Path) -> None:
+def _one_step_run(folder: Path) -> None:
+    """A proposer trained for one step on two views of a procedural chair, in ``folder``."""
     views = render_views(
         [procedural_shape(0)],
         2,
@@ -109,11 +134,12 @@ def test_a_replaced_weights_file_is_refused(tmp_path: Path) -> None:
         floor_share=0.0,
         progress=False,
     )
-    train_orientation(
-        OrientationConfig(steps=1, batch_size=2, min_points=64, out=tmp_path),
-        views,
-        progress=False,
-    )
+    config = OrientationConfig(steps=1, batch_size=2, min_points=64, out=folder)
+    train_orientation(config, views, progress=False)
+
+
+def test_a_replaced_weights_file_is_refused(tmp_path: Path) -> None:
+    _one_step_run(tmp_path)
     weights = tmp_path / WEIGHTS_FILE
     weights.write_bytes(weights.read_bytes()[:-8] + b"\0" * 8)
     with pytest.raises(ConfigError, match="does not match its card"):
@@ -122,3 +148,12 @@ def test_a_replaced_weights_file_is_refused(tmp_path: Path) -> None:
 
 def test_a_model_folder_without_orientation_has_no_proposer(tmp_path: Path) -> None:
     assert find_orientation(tmp_path) is None
+
+
+@pytest.mark.parametrize("missing", [CARD_FILE, WEIGHTS_FILE])
+def test_half_a_shipped_proposer_is_refused_not_ignored(tmp_path: Path, missing: str) -> None:
+    _one_step_run(tmp_path / "orientation")
+    assert find_orientation(tmp_path) is not None
+    (tmp_path / "orientation" / missing).unlink()
+    with pytest.raises(ConfigError, match=f"expected {CARD_FILE} and {WEIGHTS_FILE}"):
+        find_orientation(tmp_path)

@@ -5,7 +5,10 @@ gravity-aware search needs the chair's up. Both are guessed here, before any fea
 computed, by two small 3D convolutional networks on a coarse occupancy grid of the view:
 
 * the **up** network sees the view in any rotation and scores :data:`UP_BINS` directions spread
-  evenly over the sphere (a Fibonacci lattice, about 13 degrees apart);
+  evenly over the sphere (a Fibonacci lattice, about 13 degrees apart). With ``up_frame``
+  ``"principal"`` it sees the view turned onto its principal axes instead, once for each of the
+  four ways to sign them (:func:`principal_frames`), and the four distributions, turned back,
+  are averaged: the network then has a handful of poses of a view to learn, not all of SO(3);
 * the **heading** network sees the view *levelled* (its up turned onto the models' +Y) and
   scores :data:`HEADING_BINS` headings about +Y.
 
@@ -57,6 +60,21 @@ def fibonacci_sphere(count: int) -> np.ndarray:
 
 UP_DIRECTIONS = fibonacci_sphere(UP_BINS)
 HEADING_ANGLES = 2 * np.pi * np.arange(HEADING_BINS) / HEADING_BINS
+# The proper rotations that flip two axes: a frame of principal axes is defined up to them.
+AXIS_FLIPS = np.array([np.diag(s) for s in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))])
+UP_FRAMES = ("view", "principal")
+
+
+def principal_frames(points: np.ndarray) -> np.ndarray:
+    """(4,3,3) rotations whose columns are the principal axes of ``points`` (widest spread
+    first), one for each proper choice of their signs: ``points @ frame`` is the view in that
+    frame, and ``frame @ d`` a direction ``d`` of that frame in the view's."""
+    centred = points - points.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    axes = vectors[:, ::-1].copy()
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    return axes @ AXIS_FLIPS
 
 
 def occupancy_grids(clouds: list[np.ndarray], grid: int = GRID) -> Tensor:
@@ -113,11 +131,15 @@ class OrientationNet(nn.Module):
 
 
 class OrientationModel(nn.Module):
-    """The up network and the heading network, shipped as one weights file."""
+    """The up network and the heading network, shipped as one weights file. ``up_frame`` is
+    the frame the up network sees a view in (module docstring)."""
 
-    def __init__(self, width: int = 16, grid: int = GRID) -> None:
+    def __init__(self, width: int = 16, grid: int = GRID, up_frame: str = "view") -> None:
         super().__init__()
-        self.config = {"width": width, "grid": grid}
+        if up_frame not in UP_FRAMES:
+            raise ValueError(f"up_frame must be one of {UP_FRAMES}, not {up_frame!r}")
+        self.config = {"width": width, "grid": grid, "up_frame": up_frame}
+        self.up_frame = up_frame
         self.up = OrientationNet(UP_BINS, width, grid)
         self.heading = OrientationNet(HEADING_BINS, width, grid)
 
@@ -164,7 +186,15 @@ class OrientationProposer:
 
     def ups(self, points: np.ndarray, count: int) -> list[Proposal]:
         """Up directions of the chair in ``points``' frame, best first."""
-        probabilities = self._probabilities(self.model.up, [points])[0]
+        if self.model.up_frame == "principal":
+            frames = principal_frames(points)
+            per_frame = self._probabilities(self.model.up, [points @ f for f in frames])
+            # World bin k takes the probability of the frame's bin nearest to it.
+            nearest = [np.argmax(UP_DIRECTIONS @ f @ UP_DIRECTIONS.T, axis=1) for f in frames]
+            probabilities = np.mean([p[n] for p, n in zip(per_frame, nearest, strict=True)], 0)
+            probabilities /= probabilities.sum()
+        else:
+            probabilities = self._probabilities(self.model.up, [points])[0]
         return [
             Proposal(direction, score)
             for direction, score in peaks(probabilities, UP_DIRECTIONS, count, UP_DISTINCT_DEG)
@@ -188,9 +218,12 @@ class OrientationProposer:
 
 
 def find_orientation(model_dir: Path) -> OrientationProposer | None:
-    """The proposer shipped in ``model_dir``'s ``orientation/`` folder, None when it has none."""
+    """The proposer shipped in ``model_dir``'s ``orientation/`` folder, None when it has none.
+    Half of one (weights without their card, or the reverse) is refused, not ignored: without
+    its proposer the engine answers views without ``up`` far worse, and would say nothing."""
     folder = model_dir / ORIENTATION_DIR
-    return load_orientation(folder) if (folder / CARD_FILE).is_file() else None
+    shipped = (folder / WEIGHTS_FILE).is_file() or (folder / CARD_FILE).is_file()
+    return load_orientation(folder) if shipped else None
 
 
 def load_orientation(directory: Path) -> OrientationProposer:

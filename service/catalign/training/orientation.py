@@ -6,7 +6,9 @@ a ring of floor kept) or in any rotation, with sensor noise. Views are rendered 
 cached; each step then draws fresh variations of them, so a few thousand views go a long way:
 
 * for the **up** network, a random rotation of the whole view (label: the chair's up turned
-  with it) and a random number of points (a sparse sensor, a decimated scan);
+  with it) and a random number of points (a sparse sensor, a decimated scan); with
+  ``up_frame`` ``"principal"``, the view then turned onto one of its principal frames, drawn
+  at random, and the label with it;
 * for the **heading** network, the view levelled by its true up tilted by up to
   ``tilt_deg`` (an imperfect up proposal, an imprecise IMU) and turned by a random yaw (label:
   the yaw of the levelled chair).
@@ -22,7 +24,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -41,6 +43,7 @@ from catalign.features.orientation import (
     OrientationProposer,
     load_orientation,
     occupancy_grids,
+    principal_frames,
 )
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, random_rotation
@@ -58,6 +61,9 @@ class OrientationConfig(BaseModel):
     batch_size: int = Field(64, ge=1)
     learning_rate: float = Field(2e-3, gt=0)
     width: int = Field(16, ge=1, description="channels of the first conv block")
+    up_frame: Literal["view", "principal"] = Field(
+        "view", description="the frame the up network sees a view in"
+    )
     views_per_shape: int = Field(48, ge=1)
     procedural: int = Field(60, ge=0, description="procedural chairs added to the shared ones")
     view_points: int = Field(2_048, ge=16, description="points kept per cached view")
@@ -79,6 +85,7 @@ class OrientationConfig(BaseModel):
             f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
             + ("" if self.init_from is None else f" --init-from {self.init_from}")
             + ("" if self.learning_rate == 2e-3 else f" --learning-rate {self.learning_rate:g}")
+            + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
         )
 
 
@@ -160,6 +167,8 @@ def samples(
         points = views.points[row, rng.permutation(count)[:keep]].astype(np.float64)
         up = views.rotations[row] @ MODEL_UP
         turn = random_rotation(rng)
+        if config.up_frame == "principal":
+            turn = principal_frames(points @ turn.T)[rng.integers(4)].T @ turn
         rotated.append(points @ turn.T)
         ups.append(turn @ up)
         turn = yaw_rotations(rng.uniform(0, 2 * np.pi))[0]
@@ -191,7 +200,7 @@ def train_orientation(
     ``config.out``."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    model = OrientationModel(width=config.width)
+    model = OrientationModel(width=config.width, up_frame=config.up_frame)
     if config.init_from is not None:
         model.load_state_dict(load_orientation(config.init_from).model.state_dict())
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=1e-4)
