@@ -227,6 +227,12 @@ def train_orientation(
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a longer schedule).")
     ] = None,
+    networks: Annotated[
+        str,
+        typer.Option(
+            help="Networks to train: both, up or heading (the other keeps --init-from's weights)."
+        ),
+    ] = "both",
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -248,6 +254,7 @@ def train_orientation(
         learning_rate=learning_rate,
         up_frame=up_frame,
         init_from=init_from,
+        networks=networks,
     )
     with exit_on_error():
         card = run(config, SharedChairs(chairs_dir))

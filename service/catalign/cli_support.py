@@ -47,6 +47,8 @@ def options_to(config: Callable[..., Config], **options: object) -> Config:
         return config(**options)
     except ValidationError as error:
         first = error.errors()[0]
-        option = "--" + str(first["loc"][0]).replace("_", "-")
-        typer.echo(f"error: {option}: {first['msg']}", err=True)
+        message = first["msg"].removeprefix("Value error, ")
+        if first["loc"]:  # one option's value; else a rule across options
+            message = "--" + str(first["loc"][0]).replace("_", "-") + ": " + message
+        typer.echo(f"error: {message}", err=True)
         raise typer.Exit(code=2) from None

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from catalign.data.shapes import procedural_shape
 from catalign.errors import ConfigError
@@ -123,7 +124,7 @@ def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path, up_frame: 
     assert all(-np.pi <= p.value <= np.pi for h in headings for p in h)
 
 
-def _one_step_run(folder: Path) -> None:
+def _one_step_run(folder: Path, **options: object) -> None:
     """A proposer trained for one step on two views of a procedural chair, in ``folder``."""
     views = render_views(
         [procedural_shape(0)],
@@ -134,7 +135,7 @@ def _one_step_run(folder: Path) -> None:
         floor_share=0.0,
         progress=False,
     )
-    config = OrientationConfig(steps=1, batch_size=2, min_points=64, out=folder)
+    config = OrientationConfig(steps=1, batch_size=2, min_points=64, out=folder, **options)
     train_orientation(config, views, progress=False)
 
 
@@ -157,3 +158,19 @@ def test_half_a_shipped_proposer_is_refused_not_ignored(tmp_path: Path, missing:
     (tmp_path / "orientation" / missing).unlink()
     with pytest.raises(ConfigError, match=f"expected {CARD_FILE} and {WEIGHTS_FILE}"):
         find_orientation(tmp_path)
+
+
+def test_a_run_of_one_network_keeps_the_other_as_it_was(tmp_path: Path) -> None:
+    _one_step_run(tmp_path / "first")
+    _one_step_run(
+        tmp_path / "up", networks="up", init_from=tmp_path / "first", up_frame="principal"
+    )
+    first = load_orientation(tmp_path / "first").model
+    second = load_orientation(tmp_path / "up").model
+    assert second.up_frame == "principal"
+    kept = first.heading.state_dict()
+    assert all(torch.equal(kept[k], v) for k, v in second.heading.state_dict().items())
+    moved = first.up.state_dict()
+    assert not all(torch.equal(moved[k], v) for k, v in second.up.state_dict().items())
+    with pytest.raises(ValueError, match="the other needs init_from"):
+        OrientationConfig(networks="heading")

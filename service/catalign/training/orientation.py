@@ -28,7 +28,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 from torch import Tensor
 from tqdm import tqdm
 
@@ -76,6 +76,17 @@ class OrientationConfig(BaseModel):
     threads: int = Field(2, ge=1)
     out: Path = Path("runs/orientation")
     init_from: Path | None = Field(None, description="start from another run's weights")
+    networks: Literal["both", "up", "heading"] = Field(
+        "both", description="the networks this run trains; the other keeps init_from's weights"
+    )
+
+    @model_validator(mode="after")
+    def _a_kept_network_comes_from_somewhere(self) -> OrientationConfig:
+        if self.networks != "both" and self.init_from is None:
+            raise ValueError(
+                f"networks={self.networks} trains one network: the other needs init_from"
+            )
+        return self
 
     def command(self) -> str:
         """The ``catalign train-orientation`` command line that runs this configuration."""
@@ -86,6 +97,7 @@ class OrientationConfig(BaseModel):
             + ("" if self.init_from is None else f" --init-from {self.init_from}")
             + ("" if self.learning_rate == 2e-3 else f" --learning-rate {self.learning_rate:g}")
             + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
+            + ("" if self.networks == "both" else f" --networks {self.networks}")
         )
 
 
@@ -195,33 +207,46 @@ def train_orientation(
     progress: bool = True,
     data: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Train both networks on ``views``; export the weights and a card (with the accuracy on
-    ``held_out`` views, when given, and what ``data`` says of the training data) to
-    ``config.out``."""
+    """Train the networks ``config.networks`` names on ``views``; export the weights and a card
+    (with the accuracy on ``held_out`` views, when given, and what ``data`` says of the
+    training data) to ``config.out``."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     model = OrientationModel(width=config.width, up_frame=config.up_frame)
     if config.init_from is not None:
         model.load_state_dict(load_orientation(config.init_from).model.state_dict())
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=1e-4)
+    trained = (
+        [model.up, model.heading]
+        if config.networks == "both"
+        else [model.get_submodule(config.networks)]
+    )
+    for net in (model.up, model.heading):
+        net.requires_grad_(net in trained)
+    parameters = [p for net in trained for p in net.parameters()]
+    optimizer = torch.optim.AdamW(parameters, lr=config.learning_rate, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
         optimizer, max_lr=config.learning_rate, total_steps=config.steps
     )
     started = time.perf_counter()
-    model.train()
+    model.eval()
+    for net in trained:
+        net.train()  # a kept network's batch norms keep their statistics too
     bar = tqdm(range(config.steps), desc="train orientation", disable=not progress)
     for step in bar:
         rng = np.random.default_rng([config.seed, step])
         rows = rng.integers(0, len(views.counts), config.batch_size)
         rotated, up_targets, levelled, heading_targets = samples(views, rows, config, rng)
-        up_loss = soft_cross_entropy(model.up(occupancy_grids(rotated)), up_targets)
-        heading_logits = model.heading(occupancy_grids(levelled))
-        heading_loss = soft_cross_entropy(heading_logits, heading_targets)
+        losses = {}
+        if model.up in trained:
+            losses["up"] = soft_cross_entropy(model.up(occupancy_grids(rotated)), up_targets)
+        if model.heading in trained:
+            heading_logits = model.heading(occupancy_grids(levelled))
+            losses["heading"] = soft_cross_entropy(heading_logits, heading_targets)
         optimizer.zero_grad()
-        (up_loss + heading_loss).backward()
+        sum(losses.values()).backward()
         optimizer.step()
         schedule.step()
-        bar.set_postfix(up=f"{up_loss.item():.3f}", heading=f"{heading_loss.item():.3f}")
+        bar.set_postfix({name: f"{loss.item():.3f}" for name, loss in losses.items()})
     model.eval()
     seconds = time.perf_counter() - started
     accuracy = (
