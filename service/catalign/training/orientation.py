@@ -215,31 +215,26 @@ def train_orientation(
     model = OrientationModel(width=config.width, up_frame=config.up_frame)
     if config.init_from is not None:
         model.load_state_dict(load_orientation(config.init_from).model.state_dict())
-    trained = (
-        [model.up, model.heading]
-        if config.networks == "both"
-        else [model.get_submodule(config.networks)]
-    )
-    for net in (model.up, model.heading):
-        net.requires_grad_(net in trained)
-    parameters = [p for net in trained for p in net.parameters()]
+    # Only the trained networks run, so the other gets no gradient and keeps its weights.
+    trained = ("up", "heading") if config.networks == "both" else (config.networks,)
+    parameters = [p for name in trained for p in model.get_submodule(name).parameters()]
     optimizer = torch.optim.AdamW(parameters, lr=config.learning_rate, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
         optimizer, max_lr=config.learning_rate, total_steps=config.steps
     )
     started = time.perf_counter()
     model.eval()
-    for net in trained:
-        net.train()  # a kept network's batch norms keep their statistics too
+    for name in trained:
+        model.get_submodule(name).train()  # a kept network's batch norms keep their statistics
     bar = tqdm(range(config.steps), desc="train orientation", disable=not progress)
     for step in bar:
         rng = np.random.default_rng([config.seed, step])
         rows = rng.integers(0, len(views.counts), config.batch_size)
         rotated, up_targets, levelled, heading_targets = samples(views, rows, config, rng)
         losses = {}
-        if model.up in trained:
+        if "up" in trained:
             losses["up"] = soft_cross_entropy(model.up(occupancy_grids(rotated)), up_targets)
-        if model.heading in trained:
+        if "heading" in trained:
             heading_logits = model.heading(occupancy_grids(levelled))
             losses["heading"] = soft_cross_entropy(heading_logits, heading_targets)
         optimizer.zero_grad()
