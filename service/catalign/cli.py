@@ -77,6 +77,14 @@ def evaluate(
             "would; the chair stands on it, and with so3 the whole view is turned at random.",
         ),
     ] = False,
+    table: Annotated[
+        bool,
+        typer.Option(
+            "--table/--no-table",
+            help="Push each chair under a table whose top hides what lies beneath it; with so3 "
+            "the whole view is turned at random.",
+        ),
+    ] = False,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
     engine: EngineOptions = None,
 ) -> None:
@@ -106,11 +114,12 @@ def evaluate(
             model_dir=model_dir,
             up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
             floor=floor,
+            table=table,
             engine=engine_config,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
     prior = "" if config.up_prior else "-no-up"
-    kept = "-floor" if floor else ""
+    kept = ("-floor" if floor else "") + ("-table" if table else "")
     path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}{kept}.json"
     write_report(report, path)
     typer.echo(report["table"])

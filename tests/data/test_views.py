@@ -10,6 +10,7 @@ from catalign.data.views import (
     Camera,
     DepthNoise,
     Floor,
+    Table,
     add_depth_noise,
     camera_at,
     disc_points,
@@ -19,6 +20,7 @@ from catalign.data.views import (
     render_mesh_view,
     render_view,
     surface_density,
+    under_table,
     upright_rotation,
     visible_point_view,
 )
@@ -405,3 +407,19 @@ def test_surface_density_and_disc_points(box_chair: Shape, rng):
     # uniform by area: a quarter of the points within half the radius
     assert (radial < 0.4).mean() == pytest.approx(0.25, abs=0.02)
     assert surface_density(points) == pytest.approx(5000.0, rel=0.05)
+
+
+def test_a_table_hides_what_lies_under_its_top_beyond_its_edge(procedural_chair: Shape, rng):
+    shape = procedural_chair
+    pose = _upright_pose(0.4, (0.5, -0.3), shape.height / 2)
+    view = render_view(shape, pose, camera_at(pose[:3, 3], 2.0, 30.0, 40.0), rng, noisy=False)
+    # a table whose edge crosses the chair's centre, its top 0.7 m above the floor
+    table = Table(height=(0.7, 0.7), reach=(0.0, 0.0))
+    hidden = under_table(view, pose[:3, 3], np.random.default_rng(5), table)
+    direction = np.random.default_rng(5).normal(size=2)
+    beyond = (view[:, :2] - pose[:2, 3]) @ direction > 0
+    np.testing.assert_array_equal(hidden, beyond & (view[:, 2] < 0.7))
+    # about half of what lies below the top goes, nothing above it
+    low = view[:, 2] < 0.7
+    assert 0.2 < hidden[low].mean() < 0.8
+    assert not hidden[~low].any()

@@ -61,6 +61,7 @@ def test_evaluate_report_json(evaluated):
     assert report["config"]["method"] == "fpfh"
     assert report["config"]["settings"] == ["same", "cross"]
     assert report["config"]["floor"] is False
+    assert report["config"]["table"] is False
     assert report["split"] == {"val": 2, "train": 2}
     rows = {row["setting"]: row for row in report["rows"]}
     assert set(rows) == {"same", "cross"}
@@ -141,6 +142,17 @@ def test_build_cases_with_floor():
         assert (beyond & near_floor).sum() > 1000  # ... plus floor around the chair
         beyond = ((a.points[:, :2] < low - 0.05) | (a.points[:, :2] > high + 0.05)).any(axis=1)
         assert beyond.sum() == 0
+
+
+def test_build_cases_under_a_table_are_their_plain_twins_less_what_the_table_hides():
+    shapes = {"p3": procedural_shape(3)}
+    plain = build_cases(shapes, views=3, seed=5)
+    tabled = build_cases(shapes, views=3, seed=5, table=True)
+    for a, b in zip(plain, tabled, strict=True):
+        np.testing.assert_array_equal(a.pose, b.pose)
+        assert len(b.points) < len(a.points)
+        seen = {tuple(p) for p in a.points}
+        assert all(tuple(p) in seen for p in b.points)
 
 
 @pytest.mark.parametrize(

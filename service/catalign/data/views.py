@@ -13,6 +13,10 @@ the same camera with the same noise. Meshes get the disc as extra triangles in t
 casting scene, so the chair hides the floor beneath it; point-only shapes get floor points at
 their own surface density, and the chair's points hide the floor points behind them
 (:func:`unoccluded_floor`) while the chair's own visibility stays that of hidden point removal.
+
+A chair pushed under a table (:class:`Table`) loses what lies under the table top: a
+reconstruction made by a sensor looking down on the table sees the top, which the segmentation
+drops, and not the seat and legs beneath it (:func:`under_table`).
 """
 
 from __future__ import annotations
@@ -78,6 +82,31 @@ class Floor:
             raise ValueError(f"floor margin must be non-negative metres, got {self.margin}")
         if self.segments < 8:
             raise ValueError(f"a floor disc needs at least 8 segments, got {self.segments}")
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table top an upright chair is pushed under, drawn at random for each view.
+
+    The top lies ``height`` metres above the floor (z = 0, :func:`random_object_pose`); its edge
+    is a straight line ``reach`` metres from the chair's centre (negative: the table covers the
+    centre) across a random horizontal direction, and it covers the side beyond it.
+    """
+
+    height: tuple[float, float] = (0.62, 0.78)
+    reach: tuple[float, float] = (-0.1, 0.2)
+
+
+def under_table(
+    points: np.ndarray, centre: np.ndarray, rng: np.random.Generator, table: Table = Table()
+) -> np.ndarray:
+    """The mask of ``points`` (world frame) hidden under a random ``table`` next to a chair
+    standing at ``centre``: below its top and beyond its edge."""
+    direction = rng.normal(size=2)
+    direction /= np.linalg.norm(direction)
+    top, reach = rng.uniform(*table.height), rng.uniform(*table.reach)
+    beyond = (points[:, :2] - np.asarray(centre)[:2]) @ direction > reach
+    return beyond & (points[:, 2] < top)
 
 
 def upright_rotation(yaw: float) -> np.ndarray:

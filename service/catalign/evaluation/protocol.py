@@ -16,8 +16,11 @@ of three view modes (:data:`VIEW_MODES`):
   without an IMU, held at any angle, looking at a standing chair.
 
 With ``floor`` every view also keeps a ring of floor around the chair, as a segmentation that
-kept some floor would; the chair then stands upright on it, so ``so3`` with a floor is
-``turned``. Everything derives from ``seed``, so two runs see the same cases.
+kept some floor would; with ``table`` the chair is pushed under a table, whose top hides what
+lies beneath it (:func:`~catalign.data.views.under_table`). Either way the chair stands
+upright, so ``so3`` with a floor or a table is ``turned``. Everything derives from ``seed``, so
+two runs see the same cases, and a view with a table is its twin without one, less the points
+the table hides (when neither is capped at ``max_points``).
 """
 
 from __future__ import annotations
@@ -31,7 +34,14 @@ import numpy as np
 from tqdm import tqdm
 
 from catalign.data.shapes import Shape, SharedChairs, to_metric
-from catalign.data.views import Floor, PoseMode, random_camera, random_object_pose, render_view
+from catalign.data.views import (
+    Floor,
+    PoseMode,
+    random_camera,
+    random_object_pose,
+    render_view,
+    under_table,
+)
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
@@ -87,18 +97,20 @@ def build_cases(
     pose_mode: ViewMode = "upright",
     max_points: int = 20_000,
     floor: bool = False,
+    table: bool = False,
 ) -> list[TestCase]:
     """``views`` noisy partial observations of every shape, all derived from ``seed``.
 
     A ``turned`` view is the ``upright`` one turned by a random rotation: its points before the
     turn are the ``upright`` view's. ``floor`` keeps a ring of floor
     (:class:`~catalign.data.views.Floor`, default margin) in every view; a chair stands upright
-    on it, so an ``so3`` view with a floor is a ``turned`` one.
+    on it, so an ``so3`` view with a floor is a ``turned`` one; so it does under a ``table``
+    (:class:`~catalign.data.views.Table`, drawn at random with a generator of its own).
     """
     if pose_mode not in VIEW_MODES:
         raise ValueError(f"unknown view mode {pose_mode!r}; expected one of {VIEW_MODES}")
     floor_kept = Floor() if floor else None
-    turned = pose_mode == "turned" or (floor and pose_mode == "so3")
+    turned = pose_mode == "turned" or ((floor or table) and pose_mode == "so3")
     placed: PoseMode = "upright" if turned else pose_mode
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):
@@ -107,6 +119,11 @@ def build_cases(
             pose = random_object_pose(rng, placed, height=shape.height / 2)
             camera = random_camera(pose[:3, 3], rng)
             seen = render_view(shape, pose, camera, rng, floor=floor_kept)
+            if table:
+                hidden = under_table(
+                    seen, pose[:3, 3], np.random.default_rng([seed, index, view, 1])
+                )
+                seen = seen[~hidden]
             points, eye = subsample(seen, max_points, rng), camera.eye
             if turned:
                 turn = make_pose(random_rotation(rng), np.zeros(3))

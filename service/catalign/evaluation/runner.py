@@ -38,6 +38,7 @@ class EvaluationConfig:
     model_dir: Path | None = None
     up_prior: bool = True
     floor: bool = False
+    table: bool = False
     engine: EngineConfig | None = None
 
 
@@ -48,14 +49,21 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
     +Z is up (true of upright observations; in ``so3`` and ``turned`` modes it is a wrong
     prior). ``floor`` keeps a ring of floor around every observed chair (the scene turned at
-    random in so3).
+    random in so3); ``table`` pushes it under a table that hides what lies beneath its top.
     """
     up = WORLD_UP if config.up_prior else None
     registrar = build_registrar(config.method, config.model_dir, up, config.engine)
     val_ids = _first(chairs.ids("val"), config.max_shapes)
     train_ids = _first(chairs.ids("train"), config.max_shapes)
     observed = metric_shapes(chairs, val_ids)
-    cases = build_cases(observed, config.views, config.seed, config.pose_mode, floor=config.floor)
+    cases = build_cases(
+        observed,
+        config.views,
+        config.seed,
+        config.pose_mode,
+        floor=config.floor,
+        table=config.table,
+    )
     libraries = {"same": observed, "cross": metric_shapes(chairs, train_ids)}
 
     summaries = []
