@@ -10,7 +10,7 @@ import numpy as np
 from catalign.geometry.se3 import make_pose, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
-from catalign.registration.answers import best_other, distinct, same_answer
+from catalign.registration.answers import best_other, distinct, promoted, same_answer
 from catalign.registration.hypothesise import Hypothesis
 from catalign.registration.transfer import transferred
 from catalign.registration.verify import Scored
@@ -79,3 +79,12 @@ def test_a_carried_pose_puts_the_other_model_centre_where_the_source_centre_goes
     np.testing.assert_allclose(where_large, where_small, atol=1e-9)
     np.testing.assert_allclose(carried[0].transform[:3, :3], _yaw(40), atol=1e-12)
     assert transferred(library, [source], ["small", "large"], poses=0, models=5) == []
+
+
+def test_a_clearly_more_confident_alternative_is_promoted() -> None:
+    assert promoted([0.4, 0.3, 0.55, 0.52], margin=0.1) == 2  # the most confident one
+    assert promoted([0.4, 0.3, 0.48, 0.2], margin=0.1) == 0  # only just ahead: a near tie
+    assert promoted([0.9, 0.95], margin=0.0) == 1
+    assert promoted([0.4, 0.9], margin=None) == 0  # the option is off
+    assert promoted([0.4, None], margin=0.1) == 0  # no calibrator, no confidences
+    assert promoted([0.7], margin=0.1) == 0

@@ -50,6 +50,7 @@ DEFAULTS = {
     "rival_shift_m": 0.05,
     "refine": 3,
     "alternatives": 3,
+    "confidence_margin": 0.2,
     "exact_fitness": 0.9,
     "fine_cells": 4,
     "pass_voxels": 32_000,

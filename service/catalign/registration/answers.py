@@ -3,7 +3,9 @@
 Many verified poses say the same thing (one model, one heading, a few millimetres apart); the
 refinement budget and the answer's ``alternatives`` are spent on poses that say something
 different: another model, or the same model turned by more than :data:`DISTINCT_TURN_DEG`
-(a quarter or half turn of a nearly symmetric chair).
+(a quarter or half turn of a nearly symmetric chair). Among the finished answers, the one
+returned is the winner of the scores unless another is clearly more likely right
+(:func:`promoted`).
 """
 
 from __future__ import annotations
@@ -57,3 +59,16 @@ def best_other(ranked: Sequence[Scored], answer: Scored, *, same_model: bool) ->
         and not same_answer(item, answer)
     ]
     return float(np.max(scores)) if scores else 0.0
+
+
+def promoted(confidences: Sequence[float | None], margin: float | None) -> int:
+    """Which of the finished answers (the winner of the scores first) to return: the most
+    confident one when its confidence beats the winner's by more than ``margin``, else the
+    winner (0), as without ``margin`` or without a confidence for each. The confidence is
+    calibrated on evidence the score does not weigh (margins, fit, span, the belief in the
+    up), so it judges better between distinct answers; the margin keeps the winner when they
+    are nearly tied."""
+    if margin is None or not confidences or any(c is None for c in confidences):
+        return 0
+    best = int(np.argmax(confidences))
+    return best if confidences[best] > confidences[0] + margin else 0

@@ -146,6 +146,12 @@ class EngineConfig(BaseModel):
     alternatives: int = Field(default=3, ge=0)
     """Other distinct answers (another model, or the same one turned more than 30 degrees)
     returned beside the winner; the best pose of each also gets ICP."""
+    confidence_margin: float | None = Field(default=0.2, ge=0)
+    """An alternative whose confidence beats the winner's by more than this becomes the answer
+    (None: the verification score alone decides). The calibrated probability of being right
+    weighs more evidence than the score the answers were ranked by. 0.2 gains nearly as much
+    as the best margin on the evaluation's seeds 0 and 1 (0.1), and keeps a moved real scan's
+    answer, which 0.1 flips (``docs/evaluation.md``)."""
     exact_fitness: float = Field(default=0.9, ge=0, le=1)
     """The share of the query within one ICP distance of the model above which the model is
     taken to be the observed instance itself, and its fitted pose is not recentred."""

@@ -33,7 +33,8 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
    and centred on the observed extent; an alternative is only stood upright and centred;
 7. **answer** (:mod:`~catalign.registration.finish`, with step 6): model, pose, fit
    statistics, evidence and confidence, the up it was found under, the alternatives, and each
-   candidate's best verification score.
+   candidate's best verification score; an alternative clearly more confident than the winner
+   (``confidence_margin``) takes its place.
 
 With ``heading_mass``, a query whose first answer is less confident than ``heading_fallback``
 is searched again (steps 4 to 7) at every proposed heading, the first headings' views kept:
@@ -53,7 +54,7 @@ from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import Library
-from catalign.registration.answers import distinct
+from catalign.registration.answers import distinct, promoted
 from catalign.registration.base import Orientation, RegistrationResult
 from catalign.registration.category_fit import CategoryFitter
 from catalign.registration.cleanup import detached_mask
@@ -290,6 +291,18 @@ class Engine:
                 self.finisher.finish(search, item, tried, request.estimate_scale, refit=rank == 0)
                 for rank, (search, item) in enumerate(answers)
             ]
+            # An alternative clearly more confident than the winner takes its place, if it
+            # still is once finished as the winner was (refitted at the observed size).
+            first = promoted([f.confidence for f in finished], config.confidence_margin)
+            if first:
+                search, item = answers[first]
+                challenger = self.finisher.finish(
+                    search, item, tried, request.estimate_scale, refit=True
+                )
+                pair = [finished[0].confidence, challenger.confidence]
+                if promoted(pair, config.confidence_margin):
+                    del finished[first]
+                    finished.insert(0, challenger)
         return finished, tried
 
     def _challenged(
