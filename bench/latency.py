@@ -5,7 +5,8 @@ a query whose heading proposal is confident and whose answer is sure is describe
 heading, others at two, so one view is not typical) are registered against libraries of 10,
 50, 200 and 1000 procedural chairs (built once with the shipped weights and cached under
 ``--cache``), with the engine's defaults: with ``up``, with ``up`` at both proposed headings
-always (``heading_mass=none``), with ``up`` at every heading (no heading proposals: the
+always (``heading_mass=none``), with ``up`` and no sweep (``sweep_models=0``: the sweep's
+cost), with ``up`` at every heading (no heading proposals: the
 baseline of the features stage) and without ``up`` (searched under the proposed ups). The
 FPFH baseline (Open3D's recipe, every model tried) runs in the same process on the small
 libraries, where it finishes. Prints a markdown table and writes it to
@@ -40,11 +41,21 @@ from catalign.threads import limit_threads
 RESULTS = Path(__file__).parent / "results" / "latency.md"
 # The first query view's seed (its chair's and its camera's); the others follow it.
 QUERY_SEED = 5000
-STAGES = ("validate", "orient", "features", "shortlist", "match_ransac", "verify", "icp_score")
+STAGES = (
+    "validate",
+    "orient",
+    "features",
+    "shortlist",
+    "match_ransac",
+    "sweep",
+    "verify",
+    "icp_score",
+)
 # How each row of the table calls the engine: its configuration and the up it is given.
 MODES = {
     "learned engine, up": ({}, WORLD_UP),
     "learned engine, up, both proposed headings": ({"heading_mass": None}, WORLD_UP),
+    "learned engine, up, no sweep": ({"sweep_models": 0}, WORLD_UP),
     "learned engine, up, every heading": ({"heading_proposals": None}, WORLD_UP),
     "learned engine, no up": ({}, None),
 }

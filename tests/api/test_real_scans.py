@@ -87,21 +87,7 @@ def test_the_four_copies_of_one_chair_get_one_model(
     assert max(models.count(m) for m in models) >= SAME_MODEL[with_up], models
 
 
-@pytest.mark.parametrize(
-    "with_up",
-    [
-        True,
-        pytest.param(
-            False,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="without up, the moved scan gets other up proposals and another model: "
-                "the no-up path is not yet invariant to the motion",
-            ),
-        ),
-    ],
-    ids=["up", "no-up"],
-)
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
 def test_a_moved_scan_gets_the_motion_back_in_its_pose(
     client: Client,
     answers: dict[tuple[str, bool], AlignResult],

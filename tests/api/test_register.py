@@ -27,6 +27,7 @@ STAGES = {
     "features",
     "shortlist",
     "match_ransac",
+    "sweep",
     "verify",
     "icp_score",
     "total",

@@ -12,7 +12,7 @@ from catalign.deadline import Deadline
 from catalign.errors import DeadlineExceededError, DegenerateInputError, InvalidInputError
 from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.library.index import build, load
+from catalign.library.index import Library, build, load
 from catalign.registration.alignment import mutual_nearest
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
@@ -86,6 +86,7 @@ def test_a_library_shape_under_a_known_pose_is_recovered(engine: Engine) -> None
         "features",
         "shortlist",
         "match_ransac",
+        "sweep",
         "verify",
         "icp_score",
     }
@@ -107,6 +108,33 @@ def _centre_error(result, model_entry, observed, pose) -> float:
     centre_observed = (observed.points.min(axis=0) + observed.points.max(axis=0)) / 2
     placed = transform(centre_model[None], result.pose)[0]
     return float(np.linalg.norm(placed - transform(centre_observed[None], pose)[0]))
+
+
+def test_with_up_the_sweep_poses_a_library_shape_that_its_matches_cannot(engine: Engine) -> None:
+    """With ``up``, every library model's features shuffled over its key points (its matches
+    say nothing of its pose; its global descriptor, which pools them, is unchanged) and one
+    pair of them drawn per candidate, the sweep alone still finds the library shape at its
+    pose; without the sweep the same engine does not."""
+    rng = np.random.default_rng(0)
+    shuffled = Library(
+        engine.library.path,
+        engine.library.manifest,
+        [
+            replace(entry, features=rng.permutation(entry.features))
+            for entry in map(engine.library.__getitem__, engine.library.ids)
+        ],
+    )
+    rotation = axis_angle(np.array([0, 0, 1.0]), 2.0) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
+    pose = make_pose(rotation, np.array([-0.6, 1.2, 0.45]))
+    points, up = _observe(11, pose), np.array([0, 0, 1.0])
+    starved = FPFH_CONFIG.model_copy(update={"pair_draws": 1, "heading_draws": 1})
+    result = Engine(engine.extractor, shuffled, config=starved).register(points, up=up)
+    assert result.model_id == "proc-0011"
+    assert rotation_error_deg(result.pose[:3, :3], rotation) < 2.0
+    assert np.linalg.norm(result.pose[:3, 3] - pose[:3, 3]) < 0.01
+    unswept = starved.model_copy(update={"sweep_models": 0})
+    with pytest.raises(DegenerateInputError, match="no pose fits"):
+        Engine(engine.extractor, shuffled, config=unswept).register(points, up=up)
 
 
 def test_a_chair_of_another_size_is_centred_with_a_rigid_pose(engine: Engine) -> None:

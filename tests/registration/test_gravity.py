@@ -8,7 +8,7 @@ import pytest
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
 from catalign.registration.gravity import (
-    _distinct,
+    distinct_poses,
     level_pose,
     leveller,
     plausible_pairs,
@@ -95,7 +95,7 @@ def test_distinct_poses_match_a_pairwise_greedy_suppression() -> None:
         if not np.any((turn <= np.radians(15.0)) & (shift <= 0.1)):
             expected.append(i)
     for keep in (1, 8, 300):
-        assert _distinct(yaws, translations, keep, 15.0, 0.05) == expected[:keep]
+        assert distinct_poses(yaws, translations, keep, 15.0, 0.05) == expected[:keep]
 
 
 def test_leveller_turns_up_onto_plus_y() -> None:

@@ -216,7 +216,7 @@ class RegisterResponse(BaseModel):
     candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
     timings_ms: dict[str, float] = Field(
         description="Milliseconds per stage (queue, validate, orient, features, shortlist, "
-        "match_ransac, verify, icp_score, read for files) and the total."
+        "match_ransac, sweep, verify, icp_score, read for files) and the total."
     )
     request_id: str
 

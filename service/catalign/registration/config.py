@@ -141,6 +141,25 @@ class EngineConfig(BaseModel):
     rivals lost 5 right *same* poses and 10 *cross* ones of 244)."""
     rival_shift_m: float = Field(default=0.05, gt=0)
     """Nor one that moves its category-level origin further than this (metres)."""
+    sweep_models: int = Field(default=10, ge=0)
+    """With an up: the best shortlisted models whose poses are also searched from their
+    surfaces alone, every yaw and shift on a grid (:mod:`~catalign.registration.sweep`; 0:
+    none): the observed chair's own CAD may match too poorly to be posed by its matches."""
+    sweep_yaw_deg: float = Field(default=5.0, gt=0, le=90)
+    """Step of the sweep's yaws (degrees)."""
+    sweep_span_deg: float | None = Field(default=30.0, ge=0, le=180)
+    """How far either side of each described heading the sweep's yaws reach (degrees; None:
+    the whole turn)."""
+    sweep_step: int = Field(default=2, ge=1)
+    """Step of the sweep's shifts, in cells of the library's distance grids (half a voxel
+    each)."""
+    sweep_probes: int = Field(default=64, ge=3)
+    """Query key points the sweep reads, of the probes verification uses."""
+    sweep_shifts: int = Field(default=512, ge=1)
+    """Most shifts the sweep tries at one yaw (the step grows for a view small in its model's
+    box)."""
+    sweep_poses: int = Field(default=2, ge=1)
+    """Distinct poses of each swept model that go on to verification."""
     refine: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
     alternatives: int = Field(default=3, ge=0)

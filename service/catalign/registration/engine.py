@@ -21,20 +21,23 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
      mutual nearest neighbours at them;
    * **hypothesise** (:mod:`~catalign.registration.hypothesise`, ``match_ransac``): poses from
      the matches, the two-point search with an up, the three-point RANSAC otherwise;
+   * **sweep** (:mod:`~catalign.registration.sweep`): with an up, the leading candidates
+     also posed from their surfaces alone, every yaw and shift of a grid;
    * **verify** (:mod:`~catalign.registration.verify`): poses scored by the query they explain
      times the model surface they cover, nudged by the layout with an up;
 
 5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
-   poses of all orientations, scored again the same way; the best wins (with ``rival_models``,
-   unless another leading model fits the query clearly better at its pose:
-   :mod:`~catalign.registration.rivals`);
+   poses of all orientations and the best pose of each further distinct answer, scored again
+   the same way; the best wins, unless another fits exactly (``exact_fitness``: the observed
+   instance itself) and it does not (with ``rival_models``, unless another leading model fits
+   the query clearly better at its pose: :mod:`~catalign.registration.rivals`);
 6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent; an alternative is only stood upright and centred;
 7. **answer** (:mod:`~catalign.registration.finish`, with step 6): model, pose, fit
    statistics, evidence and confidence, the up it was found under, the alternatives, and each
-   candidate's best verification score; an alternative clearly more confident than the winner
-   (``confidence_margin``) takes its place.
+   candidate's best verification score; an alternative clearly more confident than a winner
+   that does not fit exactly (``confidence_margin``) takes its place.
 
 With ``heading_mass``, a query whose first answer is less confident than ``heading_fallback``
 is searched again (steps 4 to 7) at every proposed heading, the first headings' views kept:
@@ -68,6 +71,7 @@ from catalign.registration.refine import Refiner
 from catalign.registration.rivals import RivalCheck
 from catalign.registration.search import Request, Search, StageClock, query_searches
 from catalign.registration.shortlist import shortlist
+from catalign.registration.sweep import Sweeper
 from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
     MAX_RECEIVED_VOXELS,
@@ -108,6 +112,7 @@ class Engine:
         # The stages, each with its options from the config (from_config: same names).
         self.matcher = from_config(Matcher, config, library, distance=self.ransac_distance)
         self.hypothesiser = from_config(Hypothesiser, config, distance=self.ransac_distance)
+        self.sweeper = from_config(Sweeper, config, library, distance=self.ransac_distance)
         self.verifier = from_config(
             Verifier,
             config,
@@ -272,7 +277,7 @@ class Engine:
             refined = [
                 (search, self._refined(search, item, request)) for search, item in best + others
             ]
-            winner = max(refined[: len(best)], key=lambda pair: pair[1].score)
+            winner = max(refined, key=lambda pair: (self._exact(pair), pair[1].score))
             challenged = self._challenged(winner, found)
             if challenged is not winner:  # a rival won; the winner may stay an alternative
                 refined.append(challenged)
@@ -292,8 +297,11 @@ class Engine:
                 for rank, (search, item) in enumerate(answers)
             ]
             # An alternative clearly more confident than the winner takes its place, if it
-            # still is once finished as the winner was (refitted at the observed size).
-            first = promoted([f.confidence for f in finished], config.confidence_margin)
+            # still is once finished as the winner was (refitted at the observed size); a
+            # winner that fits exactly (the observed instance itself) keeps its place.
+            first = 0
+            if finished[0].fit.fitness < config.exact_fitness:
+                first = promoted([f.confidence for f in finished], config.confidence_margin)
             if first:
                 search, item = answers[first]
                 challenger = self.finisher.finish(
@@ -317,6 +325,13 @@ class Engine:
         if rival is None:
             return winner
         return search, self._weighed(search, self.verifier.score(rival, search.checks))
+
+    def _exact(self, pair: tuple[Search, Scored]) -> bool:
+        """Whether a refined pose fits the query as only the observed instance itself does
+        (``exact_fitness``): such a pose beats any that does not, whatever their scores."""
+        search, item = pair
+        fit = self.refiner.fit(item.hypothesis, search.keypoints)
+        return fit.fitness >= self.config.exact_fitness
 
     def _weak(self, answer: Finished) -> bool:
         """Whether an answer found at the confident headings alone is too unsure to keep
@@ -342,6 +357,19 @@ class Engine:
                 for view in views
                 for hypothesis in self._posed(model_id, view, turn, request)
             ]
+
+        # Sweep: with an up, the leading candidates also posed from their surfaces alone, at
+        # yaws around the proposed headings (every yaw when none was proposed).
+        with clock("sweep"):
+            if turn is not None and not request.estimate_scale:
+                orientation = search.orientation
+                hypotheses += self.sweeper.poses(
+                    search.candidates,
+                    search.keypoints[search.probes],
+                    turn,
+                    orientation.headings if orientation.headings_proposed else (),
+                    search.views[0],
+                )
 
         # Verify: every pose by the query it explains, the best also by coverage and layout;
         # then the best poses carried over to the leading candidates, verified the same way.

@@ -25,6 +25,8 @@ from catalign.registration.ransac import count_inliers, residual_terms
 
 # Only the best poses by inlier count are worth suppressing among: the rest never get checked.
 _SUPPRESSION_WINDOW = 256
+# Two poses whose yaws differ by more than this are distinct, wherever they put the model.
+DISTINCT_YAW_DEG = 15.0
 
 
 @dataclass(frozen=True)
@@ -120,7 +122,7 @@ def yaw_ransac(
     draws: int = 2_000,
     keep: int = 8,
     min_separation: float | None = None,
-    distinct_yaw_deg: float = 15.0,
+    distinct_yaw_deg: float = DISTINCT_YAW_DEG,
 ) -> YawPoses:
     """The ``keep`` best distinct four-degree-of-freedom poses for matches ``src[i] <-> dst[i]``
     (model and levelled observation points), by correspondence inliers within ``inlier_distance``.
@@ -164,11 +166,13 @@ def yaw_ransac(
         inlier_distance,
     )
     order = np.argsort(-counts, kind="stable")
-    chosen = _distinct(yaws[order], translations[order], keep, distinct_yaw_deg, inlier_distance)
+    chosen = distinct_poses(
+        yaws[order], translations[order], keep, distinct_yaw_deg, inlier_distance
+    )
     return YawPoses(yaws[order][chosen], translations[order][chosen], counts[order][chosen])
 
 
-def _distinct(
+def distinct_poses(
     yaws: np.ndarray, translations: np.ndarray, keep: int, yaw_deg: float, inlier_distance: float
 ) -> list[int]:
     """Greedy suppression: indices (in the given order) of up to ``keep`` distinct poses among

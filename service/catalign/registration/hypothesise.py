@@ -22,6 +22,9 @@ from catalign.registration.gravity import yaw_ransac
 from catalign.registration.match import Matches
 from catalign.registration.ransac import ransac
 
+# The matches of a pose that came from no matches (carried over, or swept).
+NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
+
 
 @dataclass(frozen=True)
 class Hypothesis:

@@ -16,10 +16,8 @@ import numpy as np
 
 from catalign.geometry.se3 import make_pose
 from catalign.library.index import Library
-from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.hypothesise import NO_MATCHES, Hypothesis
 from catalign.registration.verify import Scored
-
-NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 
 
 def transferred(
