@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
+from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView
 from catalign.registration.gravity import leveller, yaw_rotations
 from catalign.registration.sweep import Sweeper, closeness_table, sweep_model, sweep_yaws
@@ -99,17 +100,9 @@ def test_a_view_larger_than_the_model_at_every_yaw_gets_no_pose(chair, chair_poi
 
 
 def _sweeper(library, **options) -> Sweeper:
-    defaults = {
-        "distance": DISTANCE,
-        "sweep_models": 2,
-        "sweep_yaw_deg": 5.0,
-        "sweep_span_deg": 30.0,
-        "sweep_step": 2,
-        "sweep_probes": 64,
-        "sweep_shifts": 512,
-        "sweep_poses": 2,
-    }
-    return Sweeper(library, **(defaults | options))
+    """The engine's sweeper (its options at their defaults but for ``options``)."""
+    config = EngineConfig(**({"sweep_models": 2} | options))
+    return from_config(Sweeper, config, library, distance=DISTANCE)
 
 
 def test_the_sweepers_poses_are_model_to_observation_poses(
