@@ -55,6 +55,7 @@ DEFAULTS = {
     "sweep_probes": 64,
     "sweep_shifts": 512,
     "sweep_poses": 2,
+    "sweep_refine": 2,
     "refine": 3,
     "alternatives": 3,
     "confidence_margin": 0.2,

@@ -15,7 +15,9 @@ from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, tra
 from catalign.library.index import Library, build, load
 from catalign.registration.alignment import mutual_nearest
 from catalign.registration.config import EngineConfig
+from catalign.registration.describe import QueryView
 from catalign.registration.engine import Engine
+from catalign.registration.gravity import leveller
 
 SEEDS = (2, 8, 11)
 # FPFH matches are mostly wrong: match more query key points and every model key point, and
@@ -110,20 +112,21 @@ def _centre_error(result, model_entry, observed, pose) -> float:
     return float(np.linalg.norm(placed - transform(centre_observed[None], pose)[0]))
 
 
-def test_with_up_the_sweep_poses_a_library_shape_that_its_matches_cannot(engine: Engine) -> None:
-    """With ``up``, every library model's features shuffled over its key points (its matches
-    say nothing of its pose; its global descriptor, which pools them, is unchanged) and one
-    pair of them drawn per candidate, the sweep alone still finds the library shape at its
-    pose; without the sweep the same engine does not."""
+def _shuffled(library: Library) -> Library:
+    """``library`` with every model's features shuffled over its key points: its matches say
+    nothing of its pose, its global descriptor (which pools them) is unchanged."""
     rng = np.random.default_rng(0)
-    shuffled = Library(
-        engine.library.path,
-        engine.library.manifest,
-        [
-            replace(entry, features=rng.permutation(entry.features))
-            for entry in map(engine.library.__getitem__, engine.library.ids)
-        ],
-    )
+    entries = [
+        replace(library[i], features=rng.permutation(library[i].features)) for i in library.ids
+    ]
+    return Library(library.path, library.manifest, entries)
+
+
+def test_with_up_the_sweep_poses_a_library_shape_that_its_matches_cannot(engine: Engine) -> None:
+    """With ``up``, every library model's features shuffled (:func:`_shuffled`) and one pair of
+    matches drawn per candidate, the sweep alone still finds the library shape at its pose;
+    without the sweep the same engine does not."""
+    shuffled = _shuffled(engine.library)
     rotation = axis_angle(np.array([0, 0, 1.0]), 2.0) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
     pose = make_pose(rotation, np.array([-0.6, 1.2, 0.45]))
     points, up = _observe(11, pose), np.array([0, 0, 1.0])
@@ -135,6 +138,27 @@ def test_with_up_the_sweep_poses_a_library_shape_that_its_matches_cannot(engine:
     unswept = starved.model_copy(update={"sweep_models": 0})
     with pytest.raises(DegenerateInputError, match="no pose fits"):
         Engine(engine.extractor, shuffled, config=unswept).register(points, up=up)
+
+
+def test_a_chair_outside_the_library_is_answered_from_matches_not_swept(engine: Engine) -> None:
+    """The sweep looks for the observed chair itself: for a chair the library does not hold
+    (a library chair shrunk by 15 %: another instance), the swept poses (which fit another
+    model's surface without matching its parts) are dropped, even where they explain the view
+    far better than every matched pose (here the library's features are shuffled and only 100
+    pairs of matches are drawn per candidate, so the matched poses are poor), and the answer
+    is a matched pose, with its correspondences."""
+    rotation = axis_angle(np.array([0, 0, 1.0]), 0.4) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
+    pose = make_pose(rotation, np.array([0.2, 0.3, 0.45]))
+    points, up = transform(procedural_shape(8).scaled(0.85).points, pose), np.array([0, 0, 1.0])
+    starved = FPFH_CONFIG.model_copy(update={"pair_draws": 100, "heading_draws": 1})
+    shuffled = Engine(engine.extractor, _shuffled(engine.library), config=starved)
+    view = QueryView(points, np.zeros((len(points), 1), dtype=np.float32))
+    swept = shuffled.sweeper.poses(shuffled.library.ids, points[::50], leveller(up), (), view)
+    assert swept  # the sweep does pose the shrunk chair on library models
+    result = shuffled.register(points, up=up, seed=0)
+    assert result.fitness < engine.config.exact_fitness  # another instance
+    observed, model = result.correspondences
+    assert len(observed) == len(model) > 0
 
 
 def test_a_chair_of_another_size_is_centred_with_a_rigid_pose(engine: Engine) -> None:

@@ -160,6 +160,9 @@ class EngineConfig(BaseModel):
     box)."""
     sweep_poses: int = Field(default=2, ge=1)
     """Distinct poses of each swept model that go on to verification."""
+    sweep_refine: int = Field(default=2, ge=0)
+    """When no refined matched pose fits exactly: the best distinct swept answers that get
+    ICP; those that then fit exactly are answers, the other swept poses are dropped."""
     refine: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
     alternatives: int = Field(default=3, ge=0)

@@ -265,33 +265,37 @@ class Engine:
         if not found:
             return None
         config, clock = self.config, request.clock
-        # Refine the best poses by ICP and score them again: the best one wins. The best pose
-        # of each further distinct answer is refined too: the alternatives.
+        # Refine the best matched poses by ICP and score them again: the best one wins. The
+        # best pose of each further distinct answer is refined too: the alternatives. When none
+        # of them fits exactly, so are the best swept answers, kept if they then do.
         with clock("icp_score"):
-            best = found[: config.refine]
+            matched = [pair for pair in found if not pair[1].hypothesis.swept] or found
+            best = matched[: config.refine]
             others = [
                 pair
-                for pair in distinct(found, 1 + config.alternatives, _scored)
+                for pair in distinct(matched, 1 + config.alternatives, _scored)
                 if not any(pair is chosen for chosen in best)
             ]
-            refined = [
-                (search, self._refined(search, item, request)) for search, item in best + others
-            ]
-            winner = max(refined, key=lambda pair: (self._exact(pair), pair[1].score))
-            challenged = self._challenged(winner, found)
+            leading = best + others
+            refined = [(search, self._refined(search, item, request)) for search, item in leading]
+            if not any(self._exact(pair, request) for pair in refined):
+                for pair, done in self._exact_sweeps(found, request):
+                    leading.append(pair)
+                    refined.append(done)
+            winner = max(refined, key=lambda pair: (self._exact(pair, request), pair[1].score))
+            challenged = self._challenged(winner, matched)
             if challenged is not winner:  # a rival won; the winner may stay an alternative
                 refined.append(challenged)
                 winner = challenged
             rest = sorted((p for p in refined if p is not winner), key=_best)
             answers = distinct([winner, *rest], 1 + config.alternatives, _scored)
-            leading = best + others
 
         # Finish each answer: the category fit (another instance, up known), its statistics,
         # and the evidence its confidence is read from.
         with clock("icp_score"):
             sources = {id(item) for _, item in leading}
             tried = [item for _, item in refined]
-            tried += [item for _, item in found if id(item) not in sources]
+            tried += [item for _, item in matched if id(item) not in sources]
             finished = [
                 self.finisher.finish(search, item, tried, request.estimate_scale, refit=rank == 0)
                 for rank, (search, item) in enumerate(answers)
@@ -326,12 +330,31 @@ class Engine:
             return winner
         return search, self._weighed(search, self.verifier.score(rival, search.checks))
 
-    def _exact(self, pair: tuple[Search, Scored]) -> bool:
+    def _exact(self, pair: tuple[Search, Scored], request: Request) -> bool:
         """Whether a refined pose fits the query as only the observed instance itself does
-        (``exact_fitness``): such a pose beats any that does not, whatever their scores."""
+        (``exact_fitness``; once a call): such a pose beats any that does not, whatever their
+        scores."""
         search, item = pair
-        fit = self.refiner.fit(item.hypothesis, search.keypoints)
-        return fit.fitness >= self.config.exact_fitness
+        key = id(item.hypothesis)
+        if key not in request.exact:
+            fit = self.refiner.fit(item.hypothesis, search.keypoints)
+            request.exact[key] = fit.fitness >= self.config.exact_fitness
+        return request.exact[key]
+
+    def _exact_sweeps(
+        self, found: list[tuple[Search, Scored]], request: Request
+    ) -> list[tuple[tuple[Search, Scored], tuple[Search, Scored]]]:
+        """The ``sweep_refine`` best distinct swept answers among ``found`` that fit exactly
+        once refined, each with its refinement. The sweep looks for the observed instance
+        itself: its pose of another instance fits that surface without matching its parts, and
+        measured a worse category-level pose than the matched ones, so it is dropped."""
+        swept = [pair for pair in found if pair[1].hypothesis.swept]
+        exact = []
+        for search, item in distinct(swept, self.config.sweep_refine, _scored):
+            done = (search, self._refined(search, item, request))
+            if self._exact(done, request):
+                exact.append(((search, item), done))
+        return exact
 
     def _weak(self, answer: Finished) -> bool:
         """Whether an answer found at the confident headings alone is too unsure to keep
@@ -361,9 +384,10 @@ class Engine:
         # Sweep: with an up, the leading candidates also posed from their surfaces alone, at
         # yaws around the proposed headings (every yaw when none was proposed).
         with clock("sweep"):
+            swept = []
             if turn is not None and not request.estimate_scale:
                 orientation = search.orientation
-                hypotheses += self.sweeper.poses(
+                swept = self.sweeper.poses(
                     search.candidates,
                     search.keypoints[search.probes],
                     turn,
@@ -371,11 +395,14 @@ class Engine:
                     search.views[0],
                 )
 
-        # Verify: every pose by the query it explains, the best also by coverage and layout;
-        # then the best poses carried over to the leading candidates, verified the same way.
+        # Verify: every pose by the query it explains, the best also by coverage and layout
+        # (the swept poses apart: they explain the most by design, and would crowd the matched
+        # ones out); then the best poses carried over to the leading candidates, verified the
+        # same way.
         with clock("verify"):
             search.checks = self.verifier.query_checks(search.keypoints, search.probes, turn)
             ranked = self.verifier.rank(hypotheses, search.checks)
+            ranked += self.verifier.rank(swept, search.checks)
             carried = transferred(
                 self.library,
                 ranked,

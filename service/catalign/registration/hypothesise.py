@@ -29,12 +29,14 @@ NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 @dataclass(frozen=True)
 class Hypothesis:
     """A model -> observation pose of one candidate, with the matches it came from (rows of
-    the view's key points and of the library entry's)."""
+    the view's key points and of the library entry's); ``swept`` when the sweep found it from
+    the model's surface alone (:mod:`~catalign.registration.sweep`)."""
 
     model_id: str
     transform: np.ndarray
     matches: np.ndarray
     view: QueryView
+    swept: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -11,9 +11,13 @@ sample of the view lands near the model's surface, read from the model's distanc
 (:class:`~catalign.geometry.distance_grid.DistanceGrid`). The shifts are whole multiples of the
 grid's cell, so every read of a yaw is one integer add and one gather, with no interpolation.
 
-Each model's best distinct poses join the matched ones in verification, which decides between
-them as between any others; ICP then finishes the leaders. The grid poses are within half a
-step of the truth (2.5 degrees and 1.25 cm at the defaults), inside the reach of both.
+Each model's best distinct poses join the matched ones in verification. The grid poses are
+within half a step of the truth (2.5 degrees and 1.25 cm at the defaults), inside the reach of
+ICP, which the engine runs on the best of them when no matched pose fits exactly; it keeps
+those that then fit exactly, and drops the rest. A swept pose of *another* instance fits its
+surface without matching its parts (a seat on a seat, whichever way round), and measured a
+worse category-level pose than the matched ones: the sweep is how the observed instance itself
+is found, not another.
 """
 
 from __future__ import annotations
@@ -207,6 +211,7 @@ class Sweeper:
                     unlevel @ make_pose(rotations[i], translations[i]),
                     NO_MATCHES,
                     view,
+                    swept=True,
                 )
                 for i in chosen
             ]
