@@ -27,10 +27,11 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
      times the model surface they cover, nudged by the layout with an up;
 
 5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
-   poses of all orientations and the best pose of each further distinct answer, scored again
-   the same way; the best wins, unless another fits exactly (``exact_fitness``: the observed
-   instance itself) and it does not (with ``rival_models``, unless another leading model fits
-   the query clearly better at its pose: :mod:`~catalign.registration.rivals`);
+   poses of all orientations and the best pose of each further distinct answer (the best
+   swept answers too when none of them fits exactly), scored again the same way; the best of
+   the first wins, unless answers fit exactly (``exact_fitness``: the observed instance
+   itself), when the best of those does (with ``rival_models``, unless another leading model
+   fits the query clearly better at its pose: :mod:`~catalign.registration.rivals`);
 6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent; an alternative is only stood upright and centred;
@@ -282,7 +283,8 @@ class Engine:
                 for pair, done in self._exact_sweeps(found, request):
                     leading.append(pair)
                     refined.append(done)
-            winner = max(refined, key=lambda pair: (self._exact(pair, request), pair[1].score))
+            exact = [pair for pair in refined if self._exact(pair, request)]
+            winner = max(exact or refined[: len(best)], key=lambda pair: pair[1].score)
             challenged = self._challenged(winner, matched)
             if challenged is not winner:  # a rival won; the winner may stay an alternative
                 refined.append(challenged)
