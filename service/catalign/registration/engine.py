@@ -266,9 +266,10 @@ class Engine:
         if not found:
             return None
         config, clock = self.config, request.clock
-        # Refine the best matched poses by ICP and score them again: the best one wins. The
-        # best pose of each further distinct answer is refined too: the alternatives. When none
-        # of them fits exactly, so are the best swept answers, kept if they then do.
+        # Refine the best matched poses by ICP and score them again; the best pose of each
+        # further distinct answer is refined too (the alternatives). When none of them fits
+        # exactly, so are the best swept answers, kept only if they then do. The winner is the
+        # best-scored answer that fits exactly, else the best of the refined best matches.
         with clock("icp_score"):
             matched = [pair for pair in found if not pair[1].hypothesis.swept] or found
             best = matched[: config.refine]
