@@ -34,23 +34,13 @@ from catalign.geometry.sampling import subsample
 from catalign.library.index import build_procedural, load
 from catalign.registration.base import LibraryShape
 from catalign.registration.config import EngineConfig
-from catalign.registration.engine import Engine
+from catalign.registration.engine import STAGES, Engine
 from catalign.registration.methods import build_registrar
 from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "latency.md"
 # The first query view's seed (its chair's and its camera's); the others follow it.
 QUERY_SEED = 5000
-STAGES = (
-    "validate",
-    "orient",
-    "features",
-    "shortlist",
-    "match_ransac",
-    "sweep",
-    "verify",
-    "icp_score",
-)
 # How each row of the table calls the engine: its configuration and the up it is given.
 MODES = {
     "learned engine, up": ({}, WORLD_UP),

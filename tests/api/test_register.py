@@ -16,22 +16,12 @@ import pytest
 
 from catalign.api import catalign_pb2, catalign_pb2_grpc, health_pb2, health_pb2_grpc
 from catalign.geometry.se3 import rotation_error_deg
+from catalign.registration.engine import STAGES as ENGINE_STAGES
 
 if TYPE_CHECKING:
     from tests.api.conftest import Server, View
 
-STAGES = {
-    "queue",
-    "validate",
-    "orient",
-    "features",
-    "shortlist",
-    "match_ransac",
-    "sweep",
-    "verify",
-    "icp_score",
-    "total",
-}
+STAGES = {"queue", *ENGINE_STAGES, "total"}
 BINARY = {"content-type": "application/octet-stream"}
 FAST = {"top_k": 1, "seed": 3}
 LIBRARY = {"proc-0000", "proc-0001", "proc-0002"}

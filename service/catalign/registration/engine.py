@@ -81,6 +81,18 @@ from catalign.registration.validation import (
 )
 from catalign.registration.verify import Scored, Verifier
 
+# The stages a query's ``timings_ms`` name, in the order they run.
+STAGES = (
+    "validate",
+    "orient",
+    "features",
+    "shortlist",
+    "match_ransac",
+    "sweep",
+    "verify",
+    "icp_score",
+)
+
 
 class Engine:
     """Registers clouds against a loaded library with one feature extractor.
