@@ -42,7 +42,10 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
 
 With ``heading_mass``, a query whose first answer is less confident than ``heading_fallback``
 is searched again (steps 4 to 7) at every proposed heading, the first headings' views kept:
-its answer is then the one it gets without ``heading_mass``.
+its answer is then the one it gets without ``heading_mass``. Without ``up``, a floor guessed
+under a proposed up is doubted (it may be the chair's back) when the answer does not stand on
+it, or stands on it weakly without fitting exactly: steps 3 to 7 run again with it kept, and
+an exact answer there wins.
 
 Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
 turns it into the stages' keyword arguments, and the stages keep their own per-model caches.
@@ -67,7 +70,7 @@ from catalign.registration.describe import QueryView, describe, rotations_of
 from catalign.registration.finish import Finished, Finisher
 from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher
-from catalign.registration.orient import orient
+from catalign.registration.orient import Oriented, orient
 from catalign.registration.refine import Refiner
 from catalign.registration.rivals import RivalCheck
 from catalign.registration.search import Request, Search, StageClock, query_searches
@@ -76,6 +79,7 @@ from catalign.registration.sweep import Sweeper
 from catalign.registration.transfer import transferred
 from catalign.registration.validation import (
     MAX_RECEIVED_VOXELS,
+    MAX_VOXELS,
     CheckedCloud,
     validate_cloud,
 )
@@ -173,32 +177,22 @@ class Engine:
                 fine_cells=config.fine_cells,
             )
 
-        # Orient: the ways up it may stand (given, or proposed), the floor under it, headings;
-        # the floor, then small clusters detached from the chair, are set aside.
-        with clock("orient"):
-            oriented = orient(
-                cloud.points,
-                up,
-                self.extractor.orientation,
-                headings=self.headings,
-                up_proposals=config.up_proposals,
-                heading_proposals=config.heading_proposals,
-                heading_mass=config.heading_mass,
-                voxel=voxel,
-                min_voxels=config.min_points,
-            )
-            cloud = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
-            cloud = cloud.without(detached_mask(cloud.points), voxel, config.min_points)
-
-        # Describe and search the query at the first headings of every orientation (all of
-        # them, or the confident ones); when the answer found there is weak, search again at
-        # every proposed heading (the first ones' views kept).
-        request = Request(config.top_k if top_k is None else top_k, estimate_scale, seed, clock)
-        searches = self._described(cloud, oriented.described_first, request)
-        answered = self._answered(self._found(searches, request), request)
-        if oriented.held_back and (answered is None or self._weak(answered[0][0])):
-            searches = self._widened(searches, oriented.orientations, cloud, request)
-            answered = self._answered(self._found(searches, request), request)
+        k = config.top_k if top_k is None else top_k
+        oriented, kept = self._oriented(cloud, up, clock, find_floor=True)
+        searches, answered = self._searched(kept, oriented, Request(k, estimate_scale, seed, clock))
+        # Without up, a chair's back or side under a wrong proposed up can pass for a floor
+        # (1 to 3 of 54 so3 views a seed): set aside, it takes the part that would make the
+        # observed instance fit. A guessed floor is doubted when the answer does not stand on
+        # it, or stands on it weakly without fitting exactly: the search runs again with the
+        # floor kept (where the features can describe that much), and an exact answer there
+        # wins.
+        guessed_floor = up is None and oriented.floor.any() and cloud.voxels <= MAX_VOXELS
+        if guessed_floor and self._doubts_floor(answered):
+            bare, whole = self._oriented(cloud, up, clock, find_floor=False)
+            again = self._searched(whole, bare, Request(k, estimate_scale, seed, clock))
+            if self._fits_exactly(again[1]):
+                oriented, kept, (searches, answered) = bare, whole, again
+        cloud = kept
         if answered is None:
             raise DegenerateInputError(
                 "no pose fits this cloud: its features matched no library model consistently "
@@ -210,6 +204,59 @@ class Engine:
         candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
         result = self.finisher.result(finished, cloud, candidates, tried, clock.timings)
         return replace(result, orientations=tuple(oriented.orientations))
+
+    def _oriented(
+        self, cloud: CheckedCloud, up: np.ndarray | None, clock: StageClock, *, find_floor: bool
+    ) -> tuple[Oriented, CheckedCloud]:
+        """The ways up ``cloud`` may stand (given, or proposed), the floor under it (when
+        ``find_floor``) and the headings; and the cloud with the floor, then small clusters
+        detached from the chair, set aside."""
+        config, voxel = self.config, self.extractor.voxel_size
+        with clock("orient"):
+            oriented = orient(
+                cloud.points,
+                up,
+                self.extractor.orientation,
+                headings=self.headings,
+                up_proposals=config.up_proposals,
+                heading_proposals=config.heading_proposals,
+                heading_mass=config.heading_mass,
+                voxel=voxel,
+                min_voxels=config.min_points,
+                find_floor=find_floor,
+            )
+            kept = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
+            kept = kept.without(detached_mask(kept.points), voxel, config.min_points)
+        return oriented, kept
+
+    def _searched(
+        self, cloud: CheckedCloud, oriented: Oriented, request: Request
+    ) -> tuple[list[Search], tuple[list[Finished], list[Scored]] | None]:
+        """The searches and the answers: the query described and searched at the first
+        headings of every orientation (all of them, or the confident ones), and again at every
+        proposed heading (the first ones' views kept) when the answer found there is weak."""
+        searches = self._described(cloud, oriented.described_first, request)
+        answered = self._answered(self._found(searches, request), request)
+        if oriented.held_back and (answered is None or self._weak(answered[0][0])):
+            searches = self._widened(searches, oriented.orientations, cloud, request)
+            answered = self._answered(self._found(searches, request), request)
+        return searches, answered
+
+    def _doubts_floor(self, answered: tuple[list[Finished], list[Scored]] | None) -> bool:
+        """Whether the answers cast doubt on the guessed floor set aside: the winner was not
+        found standing on it, or it was but neither fits exactly nor is sure enough
+        (``heading_fallback``)."""
+        if answered is None:
+            return True
+        winner = answered[0][0]
+        if winner.search.orientation.floor_level is None:
+            return True
+        return not self._fits_exactly(answered) and self._weak(winner)
+
+    def _fits_exactly(self, answered: tuple[list[Finished], list[Scored]] | None) -> bool:
+        """Whether the winner of ``answered`` fits the query as only the observed instance
+        itself does (``exact_fitness``)."""
+        return answered is not None and answered[0][0].fit.fitness >= self.config.exact_fitness
 
     def _described(
         self, cloud: CheckedCloud, orientations: list[Orientation], request: Request

@@ -94,12 +94,14 @@ def orient(
     voxel: float,
     min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
+    find_floor: bool = True,
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
     proposed); ``heading_proposals`` None describes every heading even with a proposer, and
     with ``heading_mass`` a further proposal is among the first described only while the ones
-    before it hold less than that probability mass."""
+    before it hold less than that probability mass. ``find_floor`` False looks for no floor (the
+    engine's second look when a guessed floor may be a chair's back)."""
     given = up is not None
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
@@ -112,7 +114,7 @@ def orient(
         ups, beliefs = [None], [1.0]
 
     floor = np.zeros(len(points), dtype=bool)
-    for index, candidate in enumerate(ups):
+    for index, candidate in enumerate(ups if find_floor else []):
         if candidate is None:
             continue
         spread = 0.0 if given else GUESSED_FLOOR_SPREAD[min(index, 1)]
