@@ -406,13 +406,21 @@ class Engine:
     def _exact_sweeps(
         self, found: list[tuple[Search, Scored]], request: Request
     ) -> list[tuple[tuple[Search, Scored], tuple[Search, Scored]]]:
-        """The ``sweep_refine`` best distinct swept answers among ``found`` that fit exactly
-        once refined, each with its refinement. The sweep looks for the observed instance
-        itself: its pose of another instance fits that surface without matching its parts, and
-        measured a worse category-level pose than the matched ones, so it is dropped."""
+        """The ``sweep_refine`` best distinct swept answers among ``found``, and the best one
+        under each orientation, that fit exactly once refined, each with its refinement. The
+        sweep looks for the observed instance itself: its pose of another instance fits that
+        surface without matching its parts, and measured a worse category-level pose than the
+        matched ones, so it is dropped."""
         swept = [pair for pair in found if pair[1].hypothesis.swept]
+        leading = distinct(swept, self.config.sweep_refine, _scored)
+        # The best of each orientation too: a proposed up believed little weighs its poses
+        # down, yet the observed instance fits exactly under it when it is the right one.
+        searches = list({id(search): search for search, _ in swept}.values())
+        for search in searches:
+            best = distinct([pair for pair in swept if pair[0] is search], 1, _scored)
+            leading += [pair for pair in best if not any(pair is chosen for chosen in leading)]
         exact = []
-        for search, item in distinct(swept, self.config.sweep_refine, _scored):
+        for search, item in leading:
             done = (search, self._refined(search, item, request))
             if self._exact(done, request):
                 exact.append(((search, item), done))
