@@ -178,7 +178,7 @@ class Engine:
             )
 
         k = config.top_k if top_k is None else top_k
-        oriented, kept = self._oriented(cloud, up, clock, find_floor=True)
+        oriented, kept = self._oriented(cloud, up, clock)
         searches, answered = self._searched(kept, oriented, Request(k, estimate_scale, seed, clock))
         # Without up, a chair's back or side under a wrong proposed up can pass for a floor
         # (1 to 3 of 54 so3 views a seed): set aside, it takes the part that would make the
@@ -188,7 +188,7 @@ class Engine:
         # wins.
         guessed_floor = up is None and oriented.floor.any() and cloud.voxels <= MAX_VOXELS
         if guessed_floor and self._doubts_floor(answered):
-            bare, whole = self._oriented(cloud, up, clock, find_floor=False)
+            bare, whole = self._oriented(cloud, up, clock, doubted=oriented)
             again = self._searched(whole, bare, Request(k, estimate_scale, seed, clock))
             if self._fits_exactly(again[1]):
                 oriented, kept, (searches, answered) = bare, whole, again
@@ -206,11 +206,17 @@ class Engine:
         return replace(result, orientations=tuple(oriented.orientations))
 
     def _oriented(
-        self, cloud: CheckedCloud, up: np.ndarray | None, clock: StageClock, *, find_floor: bool
+        self,
+        cloud: CheckedCloud,
+        up: np.ndarray | None,
+        clock: StageClock,
+        *,
+        doubted: Oriented | None = None,
     ) -> tuple[Oriented, CheckedCloud]:
-        """The ways up ``cloud`` may stand (given, or proposed), the floor under it (when
-        ``find_floor``) and the headings; and the cloud with the floor, then small clusters
-        detached from the chair, set aside."""
+        """The ways up ``cloud`` may stand (given, or proposed), the floor under it and the
+        headings; and the cloud with the floor, then small clusters detached from the chair,
+        set aside. After a ``doubted`` look, no floor is sought and its proposed ups are
+        reused."""
         config, voxel = self.config, self.extractor.voxel_size
         with clock("orient"):
             oriented = orient(
@@ -223,7 +229,8 @@ class Engine:
                 heading_mass=config.heading_mass,
                 voxel=voxel,
                 min_voxels=config.min_points,
-                find_floor=find_floor,
+                find_floor=doubted is None,
+                guessed_ups=() if doubted is None else doubted.guessed_ups,
             )
             kept = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
             kept = kept.without(detached_mask(kept.points), voxel, config.min_points)
@@ -415,10 +422,10 @@ class Engine:
         leading = distinct(swept, self.config.sweep_refine, _scored)
         # The best of each orientation too: a proposed up believed little weighs its poses
         # down, yet the observed instance fits exactly under it when it is the right one.
-        searches = list({id(search): search for search, _ in swept}.values())
-        for search in searches:
-            best = distinct([pair for pair in swept if pair[0] is search], 1, _scored)
-            leading += [pair for pair in best if not any(pair is chosen for chosen in leading)]
+        for search in {id(search): search for search, _ in swept}.values():
+            best = next(pair for pair in swept if pair[0] is search)  # swept is best first
+            if not any(best is chosen for chosen in leading):
+                leading.append(best)
         exact = []
         for search, item in leading:
             done = (search, self._refined(search, item, request))

@@ -65,11 +65,14 @@ GUESSED_FLOOR_SPREAD = (1.0, 2.0)
 class Oriented:
     """The orientations to search, best first, the mask of the points that are floor, and how
     many of each orientation's headings to describe first (the confident ones; the rest only
-    when the answer found at those is weak)."""
+    when the answer found at those is weak). ``guessed_ups`` are the proposed ups snapped to
+    planes, with their beliefs, before a floor found under one of them goes first (empty when
+    ``up`` was given): a second look at the same cloud reuses them."""
 
     orientations: list[Orientation]
     floor: np.ndarray
     first: tuple[int, ...]
+    guessed_ups: tuple[tuple[np.ndarray, float], ...] = ()
 
     @property
     def described_first(self) -> list[Orientation]:
@@ -95,21 +98,27 @@ def orient(
     min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
     find_floor: bool = True,
+    guessed_ups: tuple[tuple[np.ndarray, float], ...] = (),
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
     proposed); ``heading_proposals`` None describes every heading even with a proposer, and
     with ``heading_mass`` a further proposal is among the first described only while the ones
-    before it hold less than that probability mass. ``find_floor`` False looks for no floor (the
-    engine's second look when a guessed floor may be a chair's back)."""
+    before it hold less than that probability mass. ``find_floor`` False looks for no floor, and
+    ``guessed_ups`` (an earlier :class:`Oriented`'s) stand for the proposer's ups: the
+    engine's second look when a guessed floor may be a chair's back."""
     given = up is not None
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
         beliefs = [1.0]
     elif proposer is not None:
-        proposals = proposer.ups(points, up_proposals)
-        ups = [snap_to_plane(points, p.value, voxel=voxel) for p in proposals]
-        beliefs = [p.score for p in proposals]
+        if not guessed_ups:
+            proposals = proposer.ups(points, up_proposals)
+            guessed_ups = tuple(
+                (snap_to_plane(points, p.value, voxel=voxel), p.score) for p in proposals
+            )
+        ups = [u for u, _ in guessed_ups]
+        beliefs = [belief for _, belief in guessed_ups]
     else:
         ups, beliefs = [None], [1.0]
 
@@ -146,7 +155,7 @@ def orient(
             for u, belief, level in zip(ups, beliefs, levels, strict=True)
         ]
         first = tuple(len(o.headings) for o in orientations)
-    return Oriented(orientations, floor, first)
+    return Oriented(orientations, floor, first, guessed_ups)
 
 
 def _confident(proposals: list[Proposal], mass: float | None) -> int:
