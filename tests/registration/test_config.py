@@ -25,6 +25,7 @@ DEFAULTS = {
     "up_tolerance_deg": 30.0,
     "min_points": 50,
     "up_proposals": 3,
+    "up_mass": 0.5,
     "up_belief_power": 0.3,
     "heading_proposals": 2,
     "heading_mass": 0.95,

@@ -18,21 +18,26 @@ VOXEL = 0.025
 
 
 class FixedProposer:
-    """Proposes the given ups, and the given headings (each with its score, 0.5 when not
-    given) under every up."""
+    """Proposes the given ups (each with its score, 1 / rank when not given), and the given
+    headings (each with its score, 0.5 when not given) under every up."""
 
     def __init__(
         self,
         ups: list[np.ndarray],
         headings: list[float],
         heading_scores: list[float] | None = None,
+        up_scores: list[float] | None = None,
     ) -> None:
         self._ups, self._headings = ups, headings
         self._scores = heading_scores or [0.5] * len(headings)
+        self._up_scores = up_scores or [1.0 / (i + 1) for i in range(len(ups))]
         self.levelled: list[np.ndarray] = []
 
     def ups(self, points: np.ndarray, count: int) -> list[Proposal]:
-        return [Proposal(u / np.linalg.norm(u), 1.0 / (i + 1)) for i, u in enumerate(self._ups)]
+        return [
+            Proposal(u / np.linalg.norm(u), score)
+            for u, score in zip(self._ups, self._up_scores, strict=True)
+        ][:count]
 
     def headings(self, levelled: list[np.ndarray], count: int) -> list[list[Proposal]]:
         self.levelled = levelled
@@ -135,6 +140,33 @@ def test_a_second_heading_is_described_first_only_while_the_first_is_unsure(
     )
     assert oriented.orientations[0].headings == (0.3, 2.0)  # both proposals, best first
     assert oriented.first == (first,)
+
+
+@pytest.mark.parametrize(
+    ("scores", "first"), [([0.7, 0.2, 0.1], (2, 0, 0)), ([0.4, 0.35, 0.25], (2, 2, 0))]
+)
+def test_without_up_a_further_up_is_searched_first_only_while_the_ones_before_are_unsure(
+    box_chair: Shape, scores: list[float], first: tuple[int, ...]
+) -> None:
+    ups = [WORLD_UP, tilted(WORLD_UP, 100.0), tilted(WORLD_UP, -100.0)]
+    proposer = FixedProposer(ups, headings=[0.3, 2.0], up_scores=scores)
+    oriented = orient(
+        view(box_chair),
+        None,
+        proposer,
+        headings=8,
+        up_proposals=3,
+        heading_proposals=2,
+        voxel=VOXEL,
+        up_mass=0.5,
+    )
+    assert not oriented.floor.any()
+    assert [o.belief for o in oriented.orientations] == scores  # every up kept, in order
+    assert oriented.first == first
+    assert oriented.held_back
+    described = oriented.described_first
+    assert len(described) == sum(n > 0 for n in first)
+    assert all(o.headings == (0.3, 2.0) for o in described)
 
 
 @pytest.mark.parametrize("heading", [0.0, 1.2, -2.5])

@@ -69,6 +69,12 @@ class EngineConfig(BaseModel):
     up_proposals: int = Field(default=3, ge=1)
     """Without ``up``: proposed up directions the gravity-aware search runs under (the best
     verified pose wins)."""
+    up_mass: float | None = Field(default=0.5, gt=0, le=1)
+    """Without ``up``: a further proposed up is searched at first only while the ones before
+    it hold less than this probability mass (None: always ``up_proposals``; a floor found under
+    the cloud holds it all): a confident up network then costs one up's search instead of
+    three; when the answer's confidence is below ``heading_fallback``, the query is searched
+    again under every proposed up."""
     up_belief_power: float = Field(default=0.3, ge=0)
     """Without ``up``: a pose's verification score is multiplied by the proposal's belief in
     its up (probability mass) to this power (0: verification alone chooses the up)."""
@@ -83,9 +89,9 @@ class EngineConfig(BaseModel):
     proposed heading. About 0.85x the time on the evaluation's *same* views and 0.97x on
     *cross* ones, which fall back more often (``docs/benchmarks.md``)."""
     heading_fallback: float = Field(default=0.7, ge=0, le=1)
-    """With ``heading_mass``: the confidence below which an answer found at the confident
-    headings alone sends the query to a search at every proposed heading (0: never; always
-    without a calibrator)."""
+    """With ``heading_mass`` (or ``up_mass``): the confidence below which an answer found at
+    the confident headings (or ups) alone sends the query to a search at every proposed
+    heading under every proposed up (0: never; always without a calibrator)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
     models."""

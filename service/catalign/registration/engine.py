@@ -40,9 +40,10 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
    candidate's best verification score; an alternative clearly more confident than a winner
    that does not fit exactly (``confidence_margin``) takes its place.
 
-With ``heading_mass``, a query whose first answer is less confident than ``heading_fallback``
-is searched again (steps 4 to 7) at every proposed heading, the first headings' views kept:
-its answer is then the one it gets without ``heading_mass``. Without ``up``, a floor guessed
+With ``heading_mass`` (and, without ``up``, ``up_mass``), a query whose first answer is less
+confident than ``heading_fallback`` is searched again (steps 3 to 7) at every proposed heading
+under every proposed up, the first views kept: its answer is then the one it gets without
+them. Without ``up``, a floor guessed
 under a proposed up is doubted (it may be the chair's back) when the answer does not stand on
 it, or stands on it weakly without fitting exactly: steps 3 to 7 run again with it kept, and
 an exact answer there wins.
@@ -227,6 +228,7 @@ class Engine:
                 up_proposals=config.up_proposals,
                 heading_proposals=config.heading_proposals,
                 heading_mass=config.heading_mass,
+                up_mass=config.up_mass,
                 voxel=voxel,
                 min_voxels=config.min_points,
                 find_floor=doubted is None,
@@ -240,12 +242,13 @@ class Engine:
         self, cloud: CheckedCloud, oriented: Oriented, request: Request
     ) -> tuple[list[Search], tuple[list[Finished], list[Scored]] | None]:
         """The searches and the answers: the query described and searched at the first
-        headings of every orientation (all of them, or the confident ones), and again at every
-        proposed heading (the first ones' views kept) when the answer found there is weak."""
+        headings of the first orientations (all of them, or the confident ones), and again at
+        every proposed heading of every orientation (the first ones' views kept) when the
+        answer found there is weak."""
         searches = self._described(cloud, oriented.described_first, request)
         answered = self._answered(self._found(searches, request), request)
         if oriented.held_back and (answered is None or self._weak(answered[0][0])):
-            searches = self._widened(searches, oriented.orientations, cloud, request)
+            searches = self._widened(searches, oriented, cloud, request)
             answered = self._answered(self._found(searches, request), request)
         return searches, answered
 
@@ -270,7 +273,13 @@ class Engine:
     ) -> list[Search]:
         """The query described at every heading of every one of ``orientations``, in shared
         forward passes: one search each."""
-        views = self._views(cloud, orientations, request.clock)
+        return self._split(orientations, self._views(cloud, orientations, request.clock), request)
+
+    def _split(
+        self, orientations: list[Orientation], views: list[QueryView], request: Request
+    ) -> list[Search]:
+        """``views`` (in the order of the orientations' rotations) split into one search for
+        each of ``orientations``."""
         return query_searches(
             orientations,
             views,
@@ -280,28 +289,27 @@ class Engine:
         )
 
     def _widened(
-        self,
-        searches: list[Search],
-        orientations: list[Orientation],
-        cloud: CheckedCloud,
-        request: Request,
+        self, searches: list[Search], oriented: Oriented, cloud: CheckedCloud, request: Request
     ) -> list[Search]:
-        """``searches`` again under the ``orientations`` they were cut from (the same ups,
-        more headings): their views kept, the further headings described."""
+        """``searches`` (of ``oriented``'s orientations described first) widened to every
+        orientation at every heading: the views described already kept, the others described."""
+        started = iter(searches)
+        searched = [next(started) if n else None for n in oriented.first]
         further = [
-            replace(whole, headings=whole.headings[len(search.views) :])
-            for search, whole in zip(searches, orientations, strict=True)
+            replace(whole, headings=whole.headings[len(search.views) if search else 0 :])
+            for search, whole in zip(searched, oriented.orientations, strict=True)
         ]
         views = iter(self._views(cloud, further, request.clock))
-        return [
-            Search(
-                whole,
-                search.views + [next(views) for _ in extra.headings],
-                search.probes,
-                search.support_radius,
-            )
-            for search, whole, extra in zip(searches, orientations, further, strict=True)
-        ]
+        widened = []
+        for search, whole, extra in zip(searched, oriented.orientations, further, strict=True):
+            added = [next(views) for _ in extra.headings]
+            if search is None:
+                widened += self._split([whole], added, request)
+            else:
+                widened.append(
+                    Search(whole, search.views + added, search.probes, search.support_radius)
+                )
+        return widened
 
     def _views(
         self, cloud: CheckedCloud, orientations: list[Orientation], clock: StageClock

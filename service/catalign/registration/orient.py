@@ -9,7 +9,8 @@ described. This stage decides how, from the caller's ``up`` and the orientation 
   proposed headings (instead of every heading of the extractor);
 * **without** ``up``: one orientation per proposed up (``up_proposals``), each levelled by its
   up and described at its own proposed headings; the engine searches under each and keeps the
-  best verified pose;
+  best verified pose (with ``up_mass``, under the confident ups first: the others only when
+  the answer there is weak);
 * with no proposer (FPFH features, a model folder without orientation weights): the caller's
   ``up`` and every heading, or, without ``up``, the free search.
 
@@ -34,7 +35,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from catalign.features.orientation import OrientationProposer, Proposal
+from catalign.features.orientation import OrientationProposer
 from catalign.geometry.sampling import voxel_downsample
 from catalign.registration.base import Orientation
 from catalign.registration.cleanup import cone_planes, floor_mask
@@ -64,10 +65,11 @@ GUESSED_FLOOR_SPREAD = (1.0, 2.0)
 @dataclass(frozen=True)
 class Oriented:
     """The orientations to search, best first, the mask of the points that are floor, and how
-    many of each orientation's headings to describe first (the confident ones; the rest only
-    when the answer found at those is weak). ``guessed_ups`` are the proposed ups snapped to
-    planes, with their beliefs, before a floor found under one of them goes first (empty when
-    ``up`` was given): a second look at the same cloud reuses them."""
+    many of each orientation's headings to describe first (the confident ones, none under an
+    up held back; the rest only when the answer found at those is weak). ``guessed_ups`` are
+    the proposed ups snapped to planes, with their beliefs, before a floor found under one of
+    them goes first (empty when ``up`` was given): a second look at the same cloud reuses
+    them."""
 
     orientations: list[Orientation]
     floor: np.ndarray
@@ -76,9 +78,9 @@ class Oriented:
 
     @property
     def described_first(self) -> list[Orientation]:
-        """The orientations at the headings described first."""
+        """The orientations described first, at the headings described first."""
         pairs = zip(self.orientations, self.first, strict=True)
-        return [replace(orientation, headings=orientation.headings[:n]) for orientation, n in pairs]
+        return [replace(o, headings=o.headings[:n]) for o, n in pairs if n]
 
     @property
     def held_back(self) -> bool:
@@ -97,6 +99,7 @@ def orient(
     voxel: float,
     min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
+    up_mass: float | None = None,
     find_floor: bool = True,
     guessed_ups: tuple[tuple[np.ndarray, float], ...] = (),
 ) -> Oriented:
@@ -104,7 +107,8 @@ def orient(
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
     proposed); ``heading_proposals`` None describes every heading even with a proposer, and
     with ``heading_mass`` a further proposal is among the first described only while the ones
-    before it hold less than that probability mass. ``find_floor`` False looks for no floor, and
+    before it hold less than that probability mass; ``up_mass`` does the same for proposed
+    ups (the others are described at no heading first). ``find_floor`` False looks for no floor, and
     ``guessed_ups`` (an earlier :class:`Oriented`'s) stand for the proposer's ups: the
     engine's second look when a guessed floor may be a chair's back."""
     given = up is not None
@@ -148,22 +152,25 @@ def orient(
             Orientation(u, given, tuple(float(p.value) for p in found), True, belief, level)
             for u, found, belief, level in zip(ups, proposed, beliefs, levels, strict=True)
         ]
-        first = tuple(_confident(found, heading_mass) for found in proposed)
+        first = tuple(_leading([p.score for p in found], heading_mass) for found in proposed)
     else:
         orientations = [
             Orientation(u, given, even_headings(headings), False, belief, level)
             for u, belief, level in zip(ups, beliefs, levels, strict=True)
         ]
         first = tuple(len(o.headings) for o in orientations)
+    if not given and proposer is not None:
+        searched = _leading(beliefs, up_mass)
+        first = tuple(n if i < searched else 0 for i, n in enumerate(first))
     return Oriented(orientations, floor, first, guessed_ups)
 
 
-def _confident(proposals: list[Proposal], mass: float | None) -> int:
-    """How many of the leading ``proposals`` come before the first whose predecessors hold
-    ``mass`` (all of them when None)."""
+def _leading(beliefs: list[float], mass: float | None) -> int:
+    """How many of the leading proposals (their ``beliefs``, best first) come before the
+    first whose predecessors hold ``mass`` (all of them when None)."""
     if mass is None:
-        return len(proposals)
-    held = np.cumsum([0.0] + [p.score for p in proposals[:-1]])
+        return len(beliefs)
+    held = np.cumsum([0.0, *beliefs[:-1]])
     return int(np.sum(held < mass))
 
 
