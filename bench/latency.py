@@ -7,7 +7,8 @@ heading, others at two, so one view is not typical) are registered against libra
 ``--cache``), with the engine's defaults: with ``up``, with ``up`` at both proposed headings
 always (``heading_mass=none``), with ``up`` and no sweep (``sweep_models=0``: the sweep's
 cost), with ``up`` at every heading (no heading proposals: the
-baseline of the features stage) and without ``up`` (searched under the proposed ups). The
+baseline of the features stage), without ``up`` (searched under the confident proposed ups
+first, ``up_mass``) and without ``up`` under every proposed up always (``up_mass=none``). The
 FPFH baseline (Open3D's recipe, every model tried) runs in the same process on the small
 libraries, where it finishes. Prints a markdown table and writes it to
 ``bench/results/latency.md``.
@@ -48,6 +49,7 @@ MODES = {
     "learned engine, up, no sweep": ({"sweep_models": 0}, WORLD_UP),
     "learned engine, up, every heading": ({"heading_proposals": None}, WORLD_UP),
     "learned engine, no up": ({}, None),
+    "learned engine, no up, every proposed up": ({"up_mass": None}, None),
 }
 
 
