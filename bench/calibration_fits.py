@@ -61,7 +61,7 @@ def validation_answers(extractor: LearnedExtractor) -> Samples:
     for setting, library in libraries.items():
         frames = frames_of(observed | library)
         registrar = IndexedRegistrar(extractor, name="learned")
-        registrar.prepare([LibraryShape(i, s.points) for i, s in sorted(library.items())])
+        registrar.prepare([LibraryShape(i, s.points, s.mesh) for i, s in sorted(library.items())])
         assert registrar.engine is not None
         for seed in (0, 1):
             cases = build_cases(observed, 2, seed, "upright")

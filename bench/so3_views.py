@@ -95,7 +95,9 @@ def main() -> None:
     for setting in args.settings:
         frames = frames_of(observed | libraries[setting])
         registrar = IndexedRegistrar(extractor, name="learned")
-        registrar.prepare([LibraryShape(i, s.points) for i, s in libraries[setting].items()])
+        registrar.prepare(
+            [LibraryShape(i, s.points, s.mesh) for i, s in libraries[setting].items()]
+        )
         assert registrar.engine is not None
         for seed in args.seeds:
             cases = build_cases(observed, 2, seed, args.pose_mode)

@@ -82,7 +82,7 @@ def main() -> None:
     registrars = {}
     for setting, shapes in libraries.items():
         registrar = IndexedRegistrar(extractor, name="learned")
-        registrar.prepare([LibraryShape(i, s.points) for i, s in sorted(shapes.items())])
+        registrar.prepare([LibraryShape(i, s.points, s.mesh) for i, s in sorted(shapes.items())])
         registrars[setting] = registrar
     cases = {seed: build_cases(observed, args.views, seed) for seed in args.seeds}
 

@@ -60,7 +60,7 @@ def main() -> None:
     top1: dict[str, list[bool]] = {}
     for library_ids, observed_ids, setting in plans(ids):
         registrar = IndexedRegistrar(extractor, name="learned")
-        registrar.prepare([LibraryShape(i, shapes[i].points) for i in library_ids])
+        registrar.prepare([LibraryShape(i, shapes[i].points, shapes[i].mesh) for i in library_ids])
         assert registrar.engine is not None
         cases = build_cases({i: shapes[i] for i in observed_ids}, args.views, SEED, "upright")
         for text, config in configs.items():

@@ -21,7 +21,13 @@ from catalign.library import (
     load,
     remove,
 )
-from catalign.library.entry import SURFACE_POINTS, describe_file, mesh_sha256
+from catalign.library.entry import (
+    DENSITY_DIAGONAL,
+    MAX_SURFACE_POINTS,
+    SURFACE_POINTS,
+    describe_file,
+    mesh_sha256,
+)
 from catalign.library.sources import SourceFile
 
 
@@ -288,3 +294,20 @@ def test_mesh_with_zero_area_is_a_read_error(files, tmp_path, extractor):
     path.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
     with pytest.raises(ShapeReadError, match=r"flat.obj"):
         build([path], tmp_path / "lib", extractor, progress=False)
+
+
+def test_a_model_larger_than_a_chair_keeps_a_chairs_sample_density(files, extractor):
+    # A 3 m sofa-sized box has 1.5 times the diagonal of DENSITY_DIAGONAL: 2.25 times the area
+    # to cover, so 2.25 times the points; a chair-sized box keeps SURFACE_POINTS, and a point
+    # cloud cannot give more points than it has.
+    sofa = describe_file(SourceFile("sofa", files.box("sofa.ply", (2.6, 0.9, 1.2))), extractor)
+    diagonal = float(np.linalg.norm([2.6, 0.9, 1.2]))
+    assert diagonal > DENSITY_DIAGONAL
+    expected = round(SURFACE_POINTS * (diagonal / DENSITY_DIAGONAL) ** 2)
+    assert len(sofa.points) == expected
+    chair = describe_file(SourceFile("chair", files.box("chair.ply")), extractor)
+    assert len(chair.points) == SURFACE_POINTS
+    cloud = files.points("scan.npy", files.random_cloud(5, count=12_000, scale=1.5))
+    assert len(describe_file(SourceFile("scan", cloud), extractor).points) == 12_000
+    huge = describe_file(SourceFile("hall", files.box("hall.ply", (9.0, 3.0, 9.0))), extractor)
+    assert len(huge.points) == MAX_SURFACE_POINTS

@@ -140,7 +140,7 @@ def run_cases(
     label: str = "",
 ) -> list[CaseOutcome]:
     """Prepare ``registrar`` with ``library`` and register every case, timing each query."""
-    registrar.prepare([LibraryShape(i, s.points) for i, s in sorted(library.items())])
+    registrar.prepare([LibraryShape(i, s.points, s.mesh) for i, s in sorted(library.items())])
     outcomes = []
     for case in tqdm(cases, desc=f"{registrar.name} {label}".strip(), unit="case"):
         started = time.perf_counter()

@@ -12,15 +12,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from catalign.geometry.io import MeshData
 from catalign.registration.confidence import Evidence
 
 
 @dataclass(frozen=True)
 class LibraryShape:
-    """A library model as registration needs it: id and surface points in its own frame."""
+    """A library model as registration needs it: id and surface points in its own frame, and
+    its mesh when it has one (a library samples a mesh itself, as ``catalign library build``
+    samples a CAD file)."""
 
     model_id: str
     points: np.ndarray
+    mesh: MeshData | None = None
 
 
 @dataclass(frozen=True)

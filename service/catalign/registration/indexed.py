@@ -1,8 +1,9 @@
 """A :class:`Registrar` over a real library index, so evaluation exercises the service's path.
 
-``prepare`` writes the given shapes as ``.npy`` files, builds an index from them with the
-extractor (the same code as ``catalign library build``), loads it with its checks, and puts an
-:class:`~catalign.registration.engine.Engine` on top; ``register`` forwards to the engine.
+``prepare`` writes the given shapes as files (a mesh as ``.ply``, points as ``.npy``), builds an
+index from them with the extractor (the same code as ``catalign library build``), loads it with
+its checks, and puts an :class:`~catalign.registration.engine.Engine` on top; ``register``
+forwards to the engine.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import build, load
@@ -43,7 +45,11 @@ class IndexedRegistrar(Registrar):
             sources = Path(folder) / "sources"
             sources.mkdir()
             for shape in library:
-                np.save(sources / f"{shape.model_id}.npy", shape.points.astype(np.float32))
+                if shape.mesh is None:
+                    np.save(sources / f"{shape.model_id}.npy", shape.points.astype(np.float32))
+                else:
+                    mesh = trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False)
+                    mesh.export(sources / f"{shape.model_id}.ply")
             build([sources], Path(folder) / "index", self.extractor, progress=False)
             index = load(Path(folder) / "index", self.extractor.fingerprint)
         self.engine = Engine(self.extractor, index, config=self.config)

@@ -163,7 +163,7 @@ def collect(
     samples = Samples()
     for library_ids, observed_ids, setting in plans(sorted(shapes)):
         registrar = IndexedRegistrar(extractor, name="learned")
-        registrar.prepare([LibraryShape(i, shapes[i].points) for i in library_ids])
+        registrar.prepare([LibraryShape(i, shapes[i].points, shapes[i].mesh) for i in library_ids])
         assert registrar.engine is not None
         observed = {i: shapes[i] for i in observed_ids}
         for mode in config.pose_modes:
