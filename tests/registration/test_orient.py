@@ -11,7 +11,7 @@ from catalign.features.orientation import Proposal
 from catalign.geometry.se3 import axis_angle, make_pose
 from catalign.registration.cleanup import floor_mask
 from catalign.registration.describe import even_headings, rotations_of
-from catalign.registration.orient import orient, snap_to_plane
+from catalign.registration.orient import Oriented, orient, snap_to_plane
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 VOXEL = 0.025
@@ -56,6 +56,22 @@ def view(shape: Shape, floor: Floor | None = None) -> np.ndarray:
     return render_view(shape, pose, camera, np.random.default_rng(0), floor=floor)
 
 
+def oriented_by(
+    points: np.ndarray, up: np.ndarray | None, proposer: FixedProposer | None, **options: float
+) -> Oriented:
+    """``orient`` with the engine's counts: 8 extractor headings, 3 proposed ups, 2 headings."""
+    return orient(
+        points,
+        up,
+        proposer,
+        headings=8,
+        up_proposals=3,
+        heading_proposals=2,
+        voxel=VOXEL,
+        **options,
+    )
+
+
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a), -1.0, 1.0))))
 
@@ -74,9 +90,7 @@ def test_a_proposal_with_no_plane_near_it_is_kept(box_chair: Shape) -> None:
 
 def test_a_given_up_is_kept_and_its_floor_set_aside(box_chair: Shape) -> None:
     points = view(box_chair, Floor())
-    oriented = orient(
-        points, WORLD_UP * 3, None, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
-    )
+    oriented = oriented_by(points, WORLD_UP * 3, None)
     [orientation] = oriented.orientations
     assert orientation.given and np.allclose(orientation.up, WORLD_UP)
     assert orientation.headings == even_headings(8)  # no proposer: every heading
@@ -90,9 +104,7 @@ def test_without_up_the_floor_under_a_proposal_becomes_the_first_up(box_chair: S
     points = view(box_chair, Floor())
     sideways, off = tilted(WORLD_UP, 90.0), tilted(WORLD_UP, 9.0)
     proposer = FixedProposer([sideways, off], headings=[0.3, 2.0, 4.0])
-    oriented = orient(
-        points, None, proposer, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
-    )
+    oriented = oriented_by(points, None, proposer)
     first, second = oriented.orientations
     assert not first.given and angle_deg(first.up, WORLD_UP) < 1.0
     assert np.allclose(second.up, sideways)
@@ -114,9 +126,7 @@ def test_without_up_a_chair_back_at_the_bottom_of_an_unlikely_proposal_is_no_flo
     front = -(pose[:3, :3] @ np.array([0.0, 0.0, 1.0]))  # the backrest is on canonical +Z
     assert floor_mask(points, front, voxel=VOXEL).sum() > 0.3 * len(points)
     proposer = FixedProposer([WORLD_UP, front], headings=[0.3, 2.0])
-    oriented = orient(
-        points, None, proposer, headings=8, up_proposals=3, heading_proposals=2, voxel=VOXEL
-    )
+    oriented = oriented_by(points, None, proposer)
     assert not oriented.floor.any()
     assert [o.floor_level for o in oriented.orientations] == [None, None]
     assert [o.belief for o in oriented.orientations] == [1.0, 0.5]  # the proposals' order
@@ -128,16 +138,7 @@ def test_a_second_heading_is_described_first_only_while_the_first_is_unsure(
     box_chair: Shape, scores: list[float], first: int
 ) -> None:
     proposer = FixedProposer([WORLD_UP], headings=[0.3, 2.0], heading_scores=scores)
-    oriented = orient(
-        view(box_chair),
-        WORLD_UP,
-        proposer,
-        headings=8,
-        up_proposals=3,
-        heading_proposals=2,
-        voxel=VOXEL,
-        heading_mass=0.95,
-    )
+    oriented = oriented_by(view(box_chair), WORLD_UP, proposer, heading_mass=0.95)
     assert oriented.orientations[0].headings == (0.3, 2.0)  # both proposals, best first
     assert oriented.first == (first,)
 
@@ -150,16 +151,7 @@ def test_without_up_a_further_up_is_searched_first_only_while_the_ones_before_ar
 ) -> None:
     ups = [WORLD_UP, tilted(WORLD_UP, 100.0), tilted(WORLD_UP, -100.0)]
     proposer = FixedProposer(ups, headings=[0.3, 2.0], up_scores=scores)
-    oriented = orient(
-        view(box_chair),
-        None,
-        proposer,
-        headings=8,
-        up_proposals=3,
-        heading_proposals=2,
-        voxel=VOXEL,
-        up_mass=0.5,
-    )
+    oriented = oriented_by(view(box_chair), None, proposer, up_mass=0.5)
     assert not oriented.floor.any()
     assert [o.belief for o in oriented.orientations] == scores  # every up kept, in order
     assert oriented.first == first
@@ -191,15 +183,6 @@ def test_a_plane_with_nothing_standing_on_it_is_no_floor(
     assert floor_mask(points, WORLD_UP, voxel=VOXEL).all()  # every floor rule holds
     assert not floor_mask(points, WORLD_UP, voxel=VOXEL, min_standing=50).any()
     proposer = FixedProposer([WORLD_UP, tilted(WORLD_UP, 90.0)], headings=[0.3, 2.0])
-    oriented = orient(
-        points,
-        WORLD_UP if given else None,
-        proposer,
-        headings=8,
-        up_proposals=3,
-        heading_proposals=2,
-        voxel=VOXEL,
-        min_voxels=50,
-    )
+    oriented = oriented_by(points, WORLD_UP if given else None, proposer, min_voxels=50)
     assert not oriented.floor.any()
     assert all(len(cloud) == len(points) for cloud in proposer.levelled)
