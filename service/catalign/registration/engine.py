@@ -43,10 +43,9 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
 With ``heading_mass`` (and, without ``up``, ``up_mass``), a query whose first answer is less
 confident than ``heading_fallback`` is searched again (steps 3 to 7) at every proposed heading
 under every proposed up, the first views kept: its answer is then the one it gets without
-them. Without ``up``, a floor guessed
-under a proposed up is doubted (it may be the chair's back) when the answer does not stand on
-it, or stands on it weakly without fitting exactly: steps 3 to 7 run again with it kept, and
-an exact answer there wins.
+them. Without ``up``, a floor guessed under a proposed up is doubted (it may be the chair's
+back) when the answer does not stand on it, or stands on it weakly without fitting exactly:
+steps 3 to 7 run again with it kept, and an exact answer there wins.
 
 Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
 turns it into the stages' keyword arguments, and the stages keep their own per-model caches.
@@ -231,7 +230,6 @@ class Engine:
                 up_mass=config.up_mass,
                 voxel=voxel,
                 min_voxels=config.min_points,
-                find_floor=doubted is None,
                 guessed_ups=() if doubted is None else doubted.guessed_ups,
             )
             kept = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)

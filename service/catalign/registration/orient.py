@@ -100,7 +100,6 @@ def orient(
     min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
     up_mass: float | None = None,
-    find_floor: bool = True,
     guessed_ups: tuple[tuple[np.ndarray, float], ...] = (),
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
@@ -108,10 +107,11 @@ def orient(
     proposed); ``heading_proposals`` None describes every heading even with a proposer, and
     with ``heading_mass`` a further proposal is among the first described only while the ones
     before it hold less than that probability mass; ``up_mass`` does the same for proposed
-    ups (the others are described at no heading first). ``find_floor`` False looks for no floor, and
-    ``guessed_ups`` (an earlier :class:`Oriented`'s) stand for the proposer's ups: the
-    engine's second look when a guessed floor may be a chair's back."""
+    ups (the others are described at no heading first). ``guessed_ups`` (an earlier
+    :class:`Oriented`'s) stand for the proposer's ups and make this a second look, which seeks
+    no floor: the engine's, when a guessed floor may be a chair's back."""
     given = up is not None
+    second_look = bool(guessed_ups)
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
         beliefs = [1.0]
@@ -127,7 +127,7 @@ def orient(
         ups, beliefs = [None], [1.0]
 
     floor = np.zeros(len(points), dtype=bool)
-    for index, candidate in enumerate(ups if find_floor else []):
+    for index, candidate in enumerate([] if second_look else ups):
         if candidate is None:
             continue
         spread = 0.0 if given else GUESSED_FLOOR_SPREAD[min(index, 1)]
