@@ -27,6 +27,7 @@ DEFAULTS = {
     "up_proposals": 3,
     "up_mass": 0.5,
     "up_belief_power": 0.3,
+    "heading_belief_power": 0.3,
     "heading_proposals": 2,
     "heading_mass": 0.95,
     "heading_fallback": 0.7,

@@ -9,6 +9,7 @@ from catalign.data.shapes import Shape
 from catalign.data.views import Floor, camera_at, render_view, upright_rotation
 from catalign.features.orientation import Proposal
 from catalign.geometry.se3 import axis_angle, make_pose
+from catalign.registration.base import Orientation
 from catalign.registration.cleanup import floor_mask
 from catalign.registration.describe import even_headings, rotations_of
 from catalign.registration.orient import Oriented, orient, snap_to_plane
@@ -141,6 +142,21 @@ def test_a_second_heading_is_described_first_only_while_the_first_is_unsure(
     oriented = oriented_by(view(box_chair), WORLD_UP, proposer, heading_mass=0.95)
     assert oriented.orientations[0].headings == (0.3, 2.0)  # both proposals, best first
     assert oriented.first == (first,)
+    # Every proposal keeps its mass, described first or not: poses are weighed by it.
+    [described] = oriented.described_first
+    assert described.proposed_headings == ((0.3, scores[0]), (2.0, scores[1]))
+
+
+def test_a_pose_is_believed_as_much_as_the_proposed_heading_near_it() -> None:
+    proposals = ((0.3, 0.6), (np.pi - 0.1, 0.3))
+    orientation = Orientation(WORLD_UP, True, (0.3,), True, proposed_headings=proposals)
+    assert orientation.heading_belief(0.3 + np.radians(20), 22.5) == 0.6
+    # Across the +-pi seam, and nearer the second proposal than the window's edge.
+    assert orientation.heading_belief(-np.pi + 0.1, 22.5) == 0.3
+    # Far from every proposal: the mass no proposal holds.
+    assert orientation.heading_belief(0.3 + np.pi / 2, 22.5) == pytest.approx(0.1)
+    # Evenly spaced headings (no proposer) weigh nothing.
+    assert Orientation(WORLD_UP, True, (0.0, np.pi)).heading_belief(1.0, 22.5) == 1.0
 
 
 @pytest.mark.parametrize(

@@ -42,8 +42,9 @@ class Orientation:
     models' canonical frame onto the levelled query) it is described at, best first (with the
     engine's ``heading_mass``, only the confident ones unless the answer there is weak), and
     whether they were proposed (else they are evenly spaced), the belief in the up: the
-    proposal's probability mass (1 for a given up or a floor under the cloud), and the level
-    of a floor found under the cloud: its height along ``up`` (None without one)."""
+    proposal's probability mass (1 for a given up or a floor under the cloud), the level
+    of a floor found under the cloud: its height along ``up`` (None without one), and every
+    proposed heading with its probability mass, described or not (empty when none was)."""
 
     up: np.ndarray | None
     given: bool
@@ -51,6 +52,17 @@ class Orientation:
     headings_proposed: bool = False
     belief: float = 1.0
     floor_level: float | None = None
+    proposed_headings: tuple[tuple[float, float], ...] = ()
+
+    def heading_belief(self, yaw: float, window_deg: float) -> float:
+        """The belief in a pose at ``yaw`` (radians about ``up``): the mass of the proposed
+        heading within ``window_deg`` of it, else the mass no proposal holds (1 when no
+        heading was proposed)."""
+        if not self.proposed_headings:
+            return 1.0
+        headings, masses = np.array(self.proposed_headings).T
+        near = np.abs(np.angle(np.exp(1j * (yaw - headings)))) <= np.radians(window_deg)
+        return float(masses[near].max()) if near.any() else max(0.0, 1.0 - float(masses.sum()))
 
 
 @dataclass(frozen=True)

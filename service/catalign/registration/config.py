@@ -78,6 +78,10 @@ class EngineConfig(BaseModel):
     up_belief_power: float = Field(default=0.3, ge=0)
     """Without ``up``: a pose's verification score is multiplied by the proposal's belief in
     its up (probability mass) to this power (0: verification alone chooses the up)."""
+    heading_belief_power: float = Field(default=0.3, ge=0)
+    """A pose's verification score is multiplied by the heading network's belief in its
+    heading (the mass of the proposed heading within half a proposal's width of it, else the
+    mass no proposal holds) to this power (0: verification alone chooses the heading)."""
     heading_proposals: int | None = Field(default=2, ge=1)
     """Proposed headings the query is described at, under each up (None: every heading of
     the extractor)."""

@@ -60,6 +60,7 @@ import numpy as np
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
+from catalign.features.orientation import HEADING_DISTINCT_DEG
 from catalign.library.index import Library
 from catalign.registration.answers import distinct, promoted
 from catalign.registration.base import Orientation, RegistrationResult
@@ -68,6 +69,7 @@ from catalign.registration.cleanup import detached_mask
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView, describe, rotations_of
 from catalign.registration.finish import Finished, Finisher
+from catalign.registration.gravity import yaw_of
 from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher
 from catalign.registration.orient import Oriented, orient
@@ -96,6 +98,8 @@ STAGES = (
     "verify",
     "icp_score",
 )
+# A pose at a heading the heading network all but rules out keeps this much belief.
+HEADING_BELIEF_FLOOR = 0.01
 
 
 class Engine:
@@ -500,9 +504,16 @@ class Engine:
     def _weighed(self, search: Search, item: Scored) -> Scored:
         """A verified pose found under ``search``'s orientation, its score weighed by the
         belief in that orientation's up (verification alone prefers an upside-down chair too
-        often)."""
-        belief = search.orientation.belief**self.config.up_belief_power
-        return Scored(item.hypothesis, item.score * belief)
+        often) and by the heading network's belief in its heading (verification alone turns
+        another instance a quarter or half turn too often)."""
+        config, orientation = self.config, search.orientation
+        weight = orientation.belief**config.up_belief_power
+        turn = search.turn
+        if config.heading_belief_power and turn is not None:
+            yaw = yaw_of(turn @ item.hypothesis.transform[:3, :3])
+            heading = orientation.heading_belief(yaw, HEADING_DISTINCT_DEG / 2)
+            weight *= max(heading, HEADING_BELIEF_FLOOR) ** config.heading_belief_power
+        return Scored(item.hypothesis, item.score * weight)
 
     def _posed(
         self, model_id: str, view: QueryView, turn: np.ndarray | None, request: Request

@@ -149,7 +149,15 @@ def orient(
         levelled = [kept @ leveller(u).T for u in ups]
         proposed = proposer.headings(levelled, heading_proposals)
         orientations = [
-            Orientation(u, given, tuple(float(p.value) for p in found), True, belief, level)
+            Orientation(
+                u,
+                given,
+                tuple(float(p.value) for p in found),
+                True,
+                belief,
+                level,
+                tuple((float(p.value), p.score) for p in found),
+            )
             for u, found, belief, level in zip(ups, proposed, beliefs, levels, strict=True)
         ]
         first = tuple(_leading([p.score for p in found], heading_mass) for found in proposed)
