@@ -49,7 +49,8 @@ SIGNALS = (
 class Evidence:
     """What the engine knows about one answer (the winner or an alternative).
 
-    ``score`` is its verification score after ICP (weighed by the belief in its up);
+    ``score`` is its verification score after ICP (weighed by the belief in its up and in its
+    heading);
     ``explained`` and ``covered`` the two shares it is the product of; ``heading_margin`` and
     ``model_margin`` the best score of a pose of the same model turned another way, and of
     another model, over its own; ``fitness``, ``rmse`` (in ICP distances) and ``inlier_ratio``
