@@ -305,7 +305,8 @@ class Client(_BaseClient):
         or ``.vertices`` (trimesh), or a ROS ``sensor_msgs/msg/PointCloud2`` message (its finite
         x, y, z; NaN returns dropped). ``top_k``: how many shortlisted models to register (server
         default when ``None``). ``up``: the observation's up direction, e.g. ``(0, 0, 1)``.
-        ``estimate_scale``: also fit a uniform scale. ``seed``: for a reproducible answer.
+        ``estimate_scale``: also fit a uniform scale (0.5 to 2). ``seed``: for a reproducible
+        answer.
         ``min_confidence``: a probability in [0, 1] the answer needs to be accepted; below it
         the result still has the pose, with ``accepted`` ``False`` and a ``reason`` (not an
         error: the caller decides, e.g. to look from another side).

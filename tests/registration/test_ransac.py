@@ -17,6 +17,7 @@ from catalign.geometry.se3 import (
 from catalign.registration import alignment
 from catalign.registration.alignment import point_cloud
 from catalign.registration.ransac import (
+    SCALE_RANGE,
     count_inliers,
     kabsch,
     kabsch_batch,
@@ -280,3 +281,28 @@ def test_agrees_with_open3d(rng):
         f"Open3D {timings['open3d'] * 1e3:.1f} ms "
         f"(Open3D / numpy = {timings['open3d'] / timings['numpy']:.1f})"
     )
+
+
+def test_one_point_matched_thrice_is_no_triangle(rng):
+    """Most correspondences end on one observed point (a query point many model points
+    matched): three of them fit a model shrunk onto it, scale 0, with all of them inliers."""
+    pose = random_pose(rng)
+    src = rng.uniform(-0.5, 0.5, size=(300, 3)) * CHAIR_BOX
+    dst = transform(src, pose)
+    dst[:200] = dst[0]
+    # Every scale allowed: the triangle check alone must refuse the point.
+    unbounded = (0.0, np.inf)
+    result = ransac(src, dst, INLIER_DISTANCE, seed=0, estimate_scale=True, scale_range=unbounded)
+    scale = np.cbrt(np.linalg.det(result.transform[:3, :3]))
+    assert scale == pytest.approx(1.0, abs=1e-6)
+    assert rotation_error_deg(result.transform[:3, :3] / scale, pose[:3, :3]) < 1e-4
+
+
+@pytest.mark.parametrize("scale_range, found", [(SCALE_RANGE, False), ((0.5, 4.0), True)])
+def test_a_scale_outside_the_range_is_not_an_answer(rng, scale_range, found):
+    src = rng.uniform(-0.5, 0.5, size=(100, 3)) * CHAIR_BOX
+    dst = 3.0 * src
+    result = ransac(src, dst, INLIER_DISTANCE, seed=0, estimate_scale=True, scale_range=scale_range)
+    assert result.found == found
+    if found:
+        np.testing.assert_allclose(result.transform[:3, :3], 3.0 * np.eye(3), atol=1e-9)

@@ -60,7 +60,9 @@ class RegisterOptions(BaseModel):
         "restricts poses to upright ones.",
     )
     estimate_scale: bool = Field(
-        default=False, strict=True, description="Also estimate a uniform scale."
+        default=False,
+        strict=True,
+        description="Also estimate a uniform scale, between 0.5 and 2 times the model's size.",
     )
     seed: int = Field(
         default=0,

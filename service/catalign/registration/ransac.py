@@ -28,6 +28,9 @@ UpCheck = Callable[[np.ndarray], np.ndarray]
 _SCORE_CHUNK = 1 << 22
 # Batches double from this size up to ``batch``: easy problems stop after a few dozen draws.
 _FIRST_BATCH = 64
+# With scale: the sizes a query may have against its model. Outside them a hypothesis is the
+# degenerate fit that shrinks the model onto a few query points (every one of them an inlier).
+SCALE_RANGE = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -158,6 +161,7 @@ def ransac(
     up_axis: tuple[float, float, float] | np.ndarray = MODEL_UP,
     up_tolerance_deg: float = 30.0,
     estimate_scale: bool = False,
+    scale_range: tuple[float, float] = SCALE_RANGE,
     min_inliers: int = 3,
     confidence: float = 0.999,
     edge_ratio: float = 0.9,
@@ -171,7 +175,8 @@ def ransac(
     points can be tilted by several degrees even when all three are inliers; the refit fixes that.
     ``edge_ratio``: sampled triplets whose matching edge lengths differ by more than this factor
     (their ratios, with ``estimate_scale``) are refused, as Open3D's edge-length checker does;
-    0 disables it. ``refine_rounds``: least-squares refits on the inliers, each re-selecting
+    0 disables it. ``scale_range``: with ``estimate_scale``, the scales a hypothesis may have.
+    ``refine_rounds``: least-squares refits on the inliers, each re-selecting
     them. ``batch``: the most hypotheses drawn and scored at once (the first batches are
     smaller); ``iterations`` caps the draws, the adaptive bound usually stops far earlier.
     ``min_inliers``: fewer make no solution. Deterministic for a given ``seed``.
@@ -208,6 +213,8 @@ def ransac(
         keep = residual.max(axis=1) < inlier_distance
         if up_check is not None:
             keep &= up_check(rotation)
+        if estimate_scale:
+            keep &= (scale >= scale_range[0]) & (scale <= scale_range[1])
         if not keep.any():
             continue
         scale, rotation, translation = scale[keep], rotation[keep], translation[keep]
@@ -221,7 +228,13 @@ def ransac(
     if best is None:
         return RansacResult(np.eye(4), np.zeros(n, dtype=bool), 0, drawn)
     scale, rotation, translation = _refine(
-        x, y, best, inlier_distance, estimate_scale, refine_rounds, up_check
+        x,
+        y,
+        best,
+        inlier_distance,
+        scale_range if estimate_scale else None,
+        refine_rounds,
+        up_check,
     )
     inliers = _residuals(x, y, scale, rotation, translation) < inlier_distance
     # Back from centred coordinates: x_dst - m_dst = s R (x_src - m_src) + t.
@@ -284,6 +297,8 @@ def _plausible_triplets(
 
     The height onto the longest edge bounds every edge from below, so one test refuses both
     close and nearly collinear points: below the inlier distance the noise decides the rotation.
+    Three copies of one point (one query point matched by three model points) have no height
+    and no longest edge: refused too, else they fit a model shrunk to a point.
     """
     keep = np.ones(len(src), dtype=bool)
     lengths = []
@@ -292,7 +307,7 @@ def _plausible_triplets(
         length = np.linalg.norm(edges, axis=2)
         twice_area = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
         longest = length.max(axis=1)
-        keep &= twice_area >= min_height * longest
+        keep &= (twice_area >= min_height * longest) & (longest >= min_height)
         lengths.append(length)
     if edge_ratio > 0:
         src_len, dst_len = lengths
@@ -363,17 +378,20 @@ def _refine(
     y: np.ndarray,
     best: tuple[float, np.ndarray, np.ndarray],
     inlier_distance: float,
-    estimate_scale: bool,
+    scale_range: tuple[float, float] | None,
     rounds: int,
     up_check: UpCheck | None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares refits on the inliers, kept while they explain at least as many points."""
+    """Least-squares refits on the inliers, kept while they explain at least as many points
+    (and stay upright, and within ``scale_range`` when the scale is estimated)."""
     inliers = _residuals(x, y, *best) < inlier_distance
     for _ in range(rounds):
         scale, rotation, translation = umeyama(
-            x[inliers], y[inliers], estimate_scale=estimate_scale
+            x[inliers], y[inliers], estimate_scale=scale_range is not None
         )
         if up_check is not None and not up_check(rotation[None])[0]:
+            break
+        if scale_range is not None and not scale_range[0] <= scale <= scale_range[1]:
             break
         refit = _residuals(x, y, scale, rotation, translation) < inlier_distance
         if refit.sum() < inliers.sum():

@@ -76,7 +76,11 @@ def query_options(
         Query(description="World up direction 'x,y,z', e.g. 0,0,1 (binary/file bodies)."),
     ] = None,
     estimate_scale: Annotated[
-        bool, Query(description="Also estimate a uniform scale (binary/file bodies).")
+        bool,
+        Query(
+            description="Also estimate a uniform scale, between 0.5 and 2 times the model's size "
+            "(binary/file bodies)."
+        ),
     ] = False,
     seed: Annotated[int, Query(ge=0, le=MAX_SEED, description="RANSAC seed.")] = 0,
     min_confidence: Annotated[
