@@ -22,6 +22,7 @@ from catalign.library.index import load
 from catalign.registration.base import RegistrationResult
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
+from catalign.registration.frame import query_frame
 from catalign.registration.gravity import leveller, yaw_of
 from catalign.registration.search import Request, Search
 from catalign.registration.verify import Scored
@@ -67,7 +68,7 @@ class Stop:
 
 
 def _headings_first_off(shipped: OrientationProposer, pose: np.ndarray, off: float) -> Proposing:
-    truth = yaw_of(leveller(UP) @ pose[:3, :3])
+    truth = yaw_of(leveller(pose[:3, :3] @ MODEL_UP) @ pose[:3, :3])
     first = Proposal(truth + np.radians(off), 0.97)
     return Proposing(shipped, headings=[first, Proposal(truth, 0.02)])
 
@@ -125,7 +126,10 @@ def registered(
     headings or ups were searched, when the proposer puts one ``first_off_deg`` from the
     truth first, sure of it, and the true one second."""
     points, pose = own_view(stop.with_up)
-    proposer = stop.proposer(extractor.orientation, pose, first_off_deg)
+    # The proposer works in the query's own frame: its proposals are put there.
+    frame = query_frame(points, UP if stop.with_up else None)
+    pose_there = make_pose(frame.rotation, -frame.rotation @ frame.centre) @ pose
+    proposer = stop.proposer(extractor.orientation, pose_there, first_off_deg)
     monkeypatch.setattr(extractor, "orientation", proposer)
     library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
     config = EngineConfig(**({"heading_mass": 0.95, stop.option: 0.5} | options))

@@ -4,7 +4,9 @@
 stage names the HTTP answer's ``timings_ms`` documents (two steps may share a name):
 
 1. **validate** (:mod:`~catalign.registration.validation`): finite, enough occupied voxels,
-   neither a line nor a plane; far points are set aside;
+   neither a line nor a plane; far points are set aside; the rest, and ``up``, are moved into
+   the query's own frame (:mod:`~catalign.registration.frame`), where every later step works
+   and from which the answer is moved back: it does not depend on where the sensor stood;
 2. **orient** (:mod:`~catalign.registration.orient`): the ways up the query may stand (the
    given ``up``, or the proposed ones), the floor under it, and the headings each is described
    at (proposed, or every heading without a proposer); the floor, then small clusters
@@ -69,6 +71,7 @@ from catalign.registration.cleanup import detached_mask
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView, describe, rotations_of
 from catalign.registration.finish import Finished, Finisher
+from catalign.registration.frame import query_frame
 from catalign.registration.gravity import yaw_of
 from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher
@@ -172,7 +175,7 @@ class Engine:
         """
         config, clock = self.config, StageClock(deadline)
         voxel = self.extractor.voxel_size
-        # Validate the cloud (and bound every later step's work).
+        # Validate the cloud (and bound every later step's work), and move it into its frame.
         with clock("validate"):
             cloud = validate_cloud(
                 points,
@@ -180,6 +183,9 @@ class Engine:
                 min_points=config.min_points,
                 fine_cells=config.fine_cells,
             )
+            frame = query_frame(cloud.points, up)
+            cloud = replace(cloud, points=frame.points(cloud.points))
+            up = frame.direction(up)
 
         k = config.top_k if top_k is None else top_k
         oriented, kept = self._oriented(cloud, up, clock)
@@ -207,7 +213,7 @@ class Engine:
         finished, tried = answered
         candidates = list(dict.fromkeys(i for s in searches for i in s.candidates))
         result = self.finisher.result(finished, cloud, candidates, tried, clock.timings)
-        return replace(result, orientations=tuple(oriented.orientations))
+        return frame.result(replace(result, orientations=tuple(oriented.orientations)))
 
     def _oriented(
         self,
