@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.shapes import procedural_shape
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import make_pose, random_rotation, transform
 from catalign.registration.base import Alternative, Orientation, RegistrationResult
 from catalign.registration.describe import rotations_of
 from catalign.registration.frame import query_frame
+from catalign.registration.validation import DENSE_POINTS, validate_cloud
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -58,6 +60,22 @@ def test_a_moved_mirror_symmetric_cloud_lands_on_the_same_points(seed: int, with
     here = query_frame(points, UP if with_up else None).points(points)
     there = query_frame(transform(points, motion), moved_up).points(transform(points, motion))
     np.testing.assert_allclose(there, here, atol=1e-9)
+
+
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
+def test_a_moved_dense_cloud_is_thinned_on_the_same_grid(with_up: bool) -> None:
+    """A dense cloud is thinned on a grid of quarter voxels: laid in the query's own frame, the
+    same chair seen from a moved sensor keeps the same points."""
+    rng = np.random.default_rng(0)
+    surface = procedural_shape(0).points
+    points = np.concatenate([surface + rng.normal(scale=1e-3, size=surface.shape)] * 8)
+    assert len(points) > DENSE_POINTS
+    motion = _motion(300, keep_up=False)
+    up, moved_up = (UP, motion[:3, :3] @ UP) if with_up else (None, None)
+    here = validate_cloud(points, voxel_size=0.025, up=up)
+    there = validate_cloud(transform(points, motion), voxel_size=0.025, up=moved_up)
+    assert len(here.points) < DENSE_POINTS and len(there.points) == len(here.points)
+    np.testing.assert_allclose(there.points, here.points, atol=1e-9)
 
 
 def test_with_up_the_frame_is_levelled_and_centred() -> None:

@@ -35,17 +35,19 @@ def test_accepts_lists_and_float32_and_returns_float64(rng):
         checked = validate_cloud(given, voxel_size=VOXEL)
         assert checked.points.dtype == np.float64 and checked.points.shape == (3000, 3)
         assert checked.received == 3000 and checked.set_aside == 0
-        np.testing.assert_allclose(checked.points, points, atol=1e-6)
+        # In the query's own frame (tests/registration/test_frame.py), every point kept.
+        np.testing.assert_allclose(checked.points, checked.frame.points(points), atol=1e-6)
     checked = validate_cloud(points, voxel_size=VOXEL)
     assert checked.points is not points  # a copy the caller may keep
-    assert checked.voxels == len(voxel_downsample(points, VOXEL)[0])
+    assert checked.voxels == len(voxel_downsample(checked.points, VOXEL)[0])
 
 
 def test_a_dense_scan_costs_what_a_sparse_one_does(rng):
     """A cloud over DENSE_POINTS reaches the engine as one centroid per fine cell."""
     dense = box_surface(rng, 3 * DENSE_POINTS)
     checked = validate_cloud(dense, voxel_size=VOXEL)
-    np.testing.assert_allclose(checked.points, voxel_downsample(dense, VOXEL / FINE_CELLS)[0])
+    in_frame = checked.frame.points(dense)
+    np.testing.assert_allclose(checked.points, voxel_downsample(in_frame, VOXEL / FINE_CELLS)[0])
     assert len(checked.points) <= FINE_CELLS**3 * checked.voxels
     assert len(checked.points) < DENSE_POINTS / 3
     assert len(validate_cloud(dense[:DENSE_POINTS], voxel_size=VOXEL).points) == DENSE_POINTS
@@ -112,7 +114,9 @@ def test_refuses_a_noisy_flat_square(rng):
 
 @pytest.mark.parametrize("noise", [0.0, 0.002])
 def test_refuses_a_line(rng, noise: float):
-    line = rng.uniform(0.0, 1.0, size=(2000, 1)) * np.array([[0.3, -0.8, 0.5]])
+    # 2.5 m: in the query's own frame the line runs along a grid axis, one voxel per 2.5 cm,
+    # and needs more than MIN_VOXELS of them to be judged by its shape.
+    line = rng.uniform(0.0, 2.5, size=(2000, 1)) * np.array([[0.3, -0.8, 0.5]])
     line += rng.normal(scale=noise, size=line.shape)
     with pytest.raises(DegenerateInputError, match="lie on a line"):
         validate_cloud(line, voxel_size=VOXEL)
@@ -185,7 +189,7 @@ def test_what_is_left_to_describe_is_bounded_after_cleanup(rng):
     assert MAX_VOXELS < cloud.voxels <= MAX_RECEIVED_VOXELS
     with pytest.raises(InvalidInputError, match=f"at most {MAX_VOXELS}"):
         cloud.without(np.zeros(len(cloud.points), dtype=bool), VOXEL, MIN_VOXELS)
-    low = cloud.points[:, 2] < 0.1
+    low = cloud.points[:, 2] < cloud.points[:, 2].min() + 0.1
     kept = cloud.without(~low, VOXEL, MIN_VOXELS)
     assert kept.set_aside == cloud.set_aside + int((~low).sum())
     assert kept.voxels <= MAX_VOXELS

@@ -71,7 +71,6 @@ from catalign.registration.cleanup import detached_mask
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.describe import QueryView, describe, rotations_of
 from catalign.registration.finish import Finished, Finisher
-from catalign.registration.frame import query_frame
 from catalign.registration.gravity import yaw_of
 from catalign.registration.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.match import Matcher
@@ -175,16 +174,16 @@ class Engine:
         """
         config, clock = self.config, StageClock(deadline)
         voxel = self.extractor.voxel_size
-        # Validate the cloud (and bound every later step's work), and move it into its frame.
+        # Validate the cloud (and bound every later step's work), in the query's own frame.
         with clock("validate"):
             cloud = validate_cloud(
                 points,
                 voxel_size=voxel,
+                up=up,
                 min_points=config.min_points,
                 fine_cells=config.fine_cells,
             )
-            frame = query_frame(cloud.points, up)
-            cloud = replace(cloud, points=frame.points(cloud.points))
+            frame = cloud.frame
             up = frame.direction(up)
 
         k = config.top_k if top_k is None else top_k

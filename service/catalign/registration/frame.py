@@ -14,9 +14,8 @@ moves every query into a frame fixed by the cloud itself, and the answer back:
 each axis pointing to the side with the longer tail, but for the least skewed one, which
 makes the frame right-handed.
 
-The answer is then equivariant to rigid motions of the query, up to rounding (and to the
-caller-frame grid that thins clouds of over
-:data:`~catalign.registration.validation.DENSE_POINTS` points before this frame is found).
+:func:`~catalign.registration.validation.validate_cloud` moves the points there before it lays
+any grid on them, so the answer is equivariant to rigid motions of the query, up to rounding.
 """
 
 from __future__ import annotations
@@ -79,6 +78,10 @@ class QueryFrame:
             proposed_headings=tuple((h - shift, m) for h, m in orientation.proposed_headings),
             floor_level=None if floor is None else floor + float(up @ self.centre),
         )
+
+
+IDENTITY = QueryFrame(np.eye(3), np.zeros(3))
+"""The frame of points that are already in their own frame."""
 
 
 def query_frame(points: np.ndarray, up: np.ndarray | None) -> QueryFrame:

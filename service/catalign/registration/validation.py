@@ -19,6 +19,9 @@ The checks also bound the work any later stage can be asked to do, whatever the 
   once; one that still occupies more than :data:`MAX_VOXELS` once its floor and detached
   clusters are set aside (:meth:`CheckedCloud.without`) is refused before the features are
   computed on it;
+* **the query's own frame comes first**: the points kept are moved into the frame of
+  :mod:`~catalign.registration.frame` before any grid is laid on them, so neither the
+  down-sampling below nor the voxel counts the checks judge depend on where the sensor stood;
 * **dense clouds are down-sampled**: a cloud of more than :data:`DENSE_POINTS` points reaches
   the engine as one point per cell of a quarter voxel (the centroid of its points; a depth
   camera's points are about that far apart at 2 m), so a dense scan of a chair costs about what
@@ -41,6 +44,7 @@ import numpy as np
 
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.sampling import occupied_voxels, voxel_downsample
+from catalign.registration.frame import IDENTITY, QueryFrame, query_frame
 
 # A principal spread below this share of the largest one is flat relative to the cloud's size.
 # Ray-cast views of procedural chairs (seat, back and legs) have ratios of 0.34 (second axis)
@@ -77,16 +81,17 @@ MAX_RANGE_M = 10_000.0
 class CheckedCloud:
     """The cloud the engine works on, and what the checks did to the caller's points.
 
-    ``points`` are float64 (M, 3): the points kept (one per fine cell for a dense cloud);
-    ``received`` counts the caller's points, ``set_aside`` those dropped (far outliers, and
-    floor or detached clusters once :meth:`without` has removed them),
-    ``voxels`` the occupied voxels of the kept points.
+    ``points`` are float64 (M, 3): the points kept (one per fine cell for a dense cloud), in
+    the query's own ``frame``; ``received`` counts the caller's points, ``set_aside`` those
+    dropped (far outliers, and floor or detached clusters once :meth:`without` has removed
+    them), ``voxels`` the occupied voxels of the kept points.
     """
 
     points: np.ndarray
     received: int
     set_aside: int
     voxels: int
+    frame: QueryFrame = IDENTITY
 
     def without(
         self, mask: np.ndarray, voxel_size: float, min_points: int, max_voxels: int = MAX_VOXELS
@@ -112,6 +117,7 @@ def validate_cloud(
     points: object,
     *,
     voxel_size: float,
+    up: np.ndarray | None = None,
     min_points: int = MIN_VOXELS,
     max_points: int | None = None,
     max_voxels: int = MAX_RECEIVED_VOXELS,
@@ -124,7 +130,8 @@ def validate_cloud(
     ``min_points`` counts occupied voxels of ``voxel_size``, not raw points: a thousand points in
     one voxel are one point to the features. The default of 50 is a patch of about 0.03 m² at
     2.5 cm voxels, far less than any partial view of a chair (over 100 voxels even at 5 cm), and
-    too little surface for descriptors that look five voxels around. ``max_points`` (when given)
+    too little surface for descriptors that look five voxels around. ``up`` (the world's up in
+    the caller's frame, when known) orients the query's own frame. ``max_points`` (when given)
     refuses larger clouds before any work is done on them; ``max_voxels`` and ``far_radius``
     bound the grid (module docstring); ``fine_cells`` is the down-sampling grid's cells per
     voxel edge for clouds of more than ``dense_points`` points (None: never down-sampled).
@@ -154,6 +161,8 @@ def validate_cloud(
         )
 
     kept = _without_far_points(cloud, far_radius)
+    frame = query_frame(kept, up)
+    kept = frame.points(kept)
     fine = kept
     if fine_cells is not None and len(kept) > dense_points:
         fine, _ = voxel_downsample(kept, voxel_size / fine_cells)
@@ -170,7 +179,11 @@ def validate_cloud(
         )
     _check_not_flat(centroids, voxel_size)
     return CheckedCloud(
-        points=fine, received=len(cloud), set_aside=len(cloud) - len(kept), voxels=len(centroids)
+        points=fine,
+        received=len(cloud),
+        set_aside=len(cloud) - len(kept),
+        voxels=len(centroids),
+        frame=frame,
     )
 
 
