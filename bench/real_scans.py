@@ -62,13 +62,14 @@ def stability(
     also its moved pose within 2 degrees and 2 cm, and the answers with another random seed
     that keep the model, as a table row's cells."""
     same = agree = reseeded = 0
+    up = WORLD_UP if with_up else None
     for points in scans.values():
-        before = engine.register(points, up=WORLD_UP if with_up else None, seed=0)
-        again = engine.register(points, up=WORLD_UP if with_up else None, seed=1)
+        before = engine.register(points, up=up, seed=0)
+        again = engine.register(points, up=up, seed=1)
         reseeded += again.model_id == before.model_id
         for move in moves:
-            up = move[:3, :3] @ WORLD_UP if with_up else None
-            after = engine.register(transform(points, move), up=up, seed=0)
+            moved_up = None if up is None else move[:3, :3] @ up
+            after = engine.register(transform(points, move), up=moved_up, seed=0)
             expected = move @ before.pose
             same += after.model_id == before.model_id
             agree += (
