@@ -12,6 +12,8 @@ from catalign.data.shapes import procedural_shape
 from catalign.evaluation.protocol import build_cases
 from catalign.evaluation.report import COLUMNS
 from catalign.geometry.se3 import transform
+from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.confidence import SIGNALS, find_calibrator
 from catalign.registration.config import EngineConfig
 
 runner = CliRunner()
@@ -224,3 +226,10 @@ def test_engine_options_reach_the_engine_and_the_report(chairs_root: Path, tmp_p
     cases = report["cases"]["same"]
     assert len(cases) == 2
     assert all(case.get("alternatives", []) == [] for case in cases)  # alternatives=0 reached it
+    # Each answer keeps its confidence signals: the shipped calibrator reads its confidence
+    # from them again, so another calibrator can be scored on the same answers.
+    calibrator = find_calibrator(DEFAULT_MODEL_DIR)
+    assert calibrator is not None
+    for case in cases:
+        row = np.array([[case["evidence"][name] for name in SIGNALS]])
+        assert calibrator.probabilities(row)[0] == pytest.approx(case["confidence"])

@@ -17,6 +17,7 @@ from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.registration.base import LibraryShape
 from catalign.registration.confidence import SIGNALS, Calibrator, find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.training.calibration import plans
 
 runner = CliRunner()
 
@@ -80,3 +81,17 @@ def test_the_shipped_calibrator_matches_this_code_and_saw_no_validation_chair() 
     chairs = data["card"]["data"]["chair_ids"]
     assert len(chairs) >= 50
     assert all(split_of(chair) == "train" for chair in chairs)  # never a validation chair
+
+
+def test_every_training_chair_is_observed_once_in_each_setting() -> None:
+    ids = [f"chair{i:02d}" for i in range(61)]
+    found = plans(ids)
+    for setting in ("same", "cross"):
+        observed = [i for _, seen, s in found if s == setting for i in seen]
+        assert sorted(observed) == ids, setting
+    for library, seen, setting in found:
+        # *same*: the observed chairs' own CAD is in the library (every training chair);
+        # *cross*: none is, in a library near the evaluation's 61.
+        inside = set(seen) <= set(library) if setting == "same" else not set(seen) & set(library)
+        assert inside, setting
+        assert len(library) in ((61,) if setting == "same" else (45, 46)), setting

@@ -23,6 +23,7 @@ from catalign.evaluation.metrics import (
 )
 from catalign.evaluation.protocol import CaseOutcome
 from catalign.geometry.ncc import NCCFrame
+from catalign.registration.confidence import Evidence
 
 # A refused view (too little of the chair in sight) fails every threshold.
 REFUSED = PoseError(rre_deg=180.0, rte_m=float("inf"))
@@ -82,6 +83,7 @@ def summarise(
                     )
                 ),
                 "confidence": other.confidence,
+                "evidence": _evidence(other.evidence),
             }
             for other in result.alternatives
         ]
@@ -94,6 +96,7 @@ def summarise(
                 "match_acc": accuracy,
                 "fitness": result.fitness,
                 "confidence": result.confidence,
+                "evidence": _evidence(result.evidence),
                 "right": is_right(error),
                 "alternatives": alternatives,
                 "seconds": outcome.seconds,
@@ -121,6 +124,12 @@ def summarise(
     row["s/query median"] = float(np.median(seconds))
     row["s/query p95"] = float(np.percentile(seconds, 95))
     return {"row": row, "cases": cases}
+
+
+def _evidence(evidence: Evidence | None) -> dict[str, float] | None:
+    """An answer's confidence signals, so another calibrator can be scored on the report's
+    answers without registering them again."""
+    return None if evidence is None else evidence.signals()
 
 
 def confidence_columns(cases: Sequence[dict[str, Any]]) -> dict[str, float | None]:
