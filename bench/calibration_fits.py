@@ -1,6 +1,6 @@
 """Other fits of the answers' confidence, scored on the validation answers.
 
-The shipped calibrator (``catalign calibrate``) is a logistic regression on every answer
+The shipped calibrator (``catalign calibrate``) is fitted on every answer
 (winners and alternatives) of views of the 61 training chairs. This script registers the
 validation views once (upright, ``up`` given, seeds 0 and 1, *same* and *cross*, as ``catalign
 evaluate`` does), keeps each winner's evidence, and scores on it the calibrators fitted on:
@@ -35,7 +35,7 @@ from catalign.evaluation.protocol import build_cases, frames_of, metric_shapes
 from catalign.features.extractor import LearnedExtractor
 from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.base import LibraryShape
-from catalign.registration.confidence import Calibrator, find_calibrator
+from catalign.registration.confidence import find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.threads import limit_threads
 from catalign.training.calibration import (
@@ -107,7 +107,7 @@ def held_out(samples: Samples, keep: np.ndarray) -> np.ndarray:
     fold = np.array([chairs.index(c) % FOLDS for c in samples.chairs])
     matrix, probabilities = samples.matrix(), np.zeros(len(samples.right))
     for k in range(FOLDS):
-        calibrator = Calibrator(*fit(subset(samples, keep & (fold != k))), card={})
+        calibrator = fit(subset(samples, keep & (fold != k)))
         probabilities[fold == k] = calibrator.probabilities(matrix[fold == k])
     return probabilities
 
@@ -148,7 +148,7 @@ def main() -> None:
         "|---|---|---|---|---|---|",
     ]
     for name, samples in fits.items():
-        p = Calibrator(*fit(samples), card={}).probabilities(answers.matrix())
+        p = fit(samples).probabilities(answers.matrix())
         lines.append(
             f"| {name} | {len(samples.right)} | {scored(p[same], right[same])} | "
             f"{scored(p[~same], right[~same])} |"

@@ -300,7 +300,7 @@ def calibrate(
         typer.Option(help="Refit from a run's samples.npz instead of registering views again."),
     ] = None,
 ) -> None:
-    """Fit the answers' confidence (a logistic regression) on views of the training chairs."""
+    """Fit the answers' confidence (boosted trees) on views of the training chairs."""
     from catalign.data.shapes import SharedChairs
     from catalign.features.extractor import LearnedExtractor
     from catalign.training.calibration import CalibrationConfig, run

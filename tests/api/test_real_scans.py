@@ -5,9 +5,10 @@ of one chair get one model, and a scan moved by a known transform gets that tran
 
 Every scan, moved, gets its motion back, with ``up`` and without: the engine works in the
 query's own frame (:mod:`catalign.registration.frame`). With ``up`` every scan comes back
-upright; the copies get one model 3 times of 4 (the goal is 4): scene0000_00_inst30's best
-scored answer is proc-0043, as the other copies', but proc-0056 is more confident by over
-``confidence_margin`` and takes its place. Without ``up`` the orientation proposals, trained on
+upright; the copies split between two near-tied models, two each (the goal is 4 of 4). The
+best-scored answer of inst29 is proc-0056; a logistic calibrator rated the proc-0043
+alternative more confident by over ``confidence_margin`` and promoted it (3 of 4), the shipped
+trees rate the two alike (0.63 and 0.59). Without ``up`` the orientation proposals, trained on
 synthetic views only, miss on some of these decimated reconstructions: 6 of 10 come back
 upright, and no two copies get the same model (``bench/results/real_scans.md``), short of the
 goal of every scan; the checks guard the measured state.
@@ -70,7 +71,7 @@ def tilt_deg(result: AlignResult, up: np.ndarray = WORLD_UP) -> float:
 # (with up, without up): scans that must come back within 10 degrees of upright (of 10), and
 # copies of the scene0000_00 chair that must share the most common model (of 4).
 UPRIGHT = {True: 10, False: 6}
-SAME_MODEL = {True: 3, False: 2}
+SAME_MODEL = {True: 2, False: 2}
 
 
 @pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])

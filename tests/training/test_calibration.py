@@ -17,7 +17,7 @@ from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.registration.base import LibraryShape
 from catalign.registration.confidence import SIGNALS, Calibrator, find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
-from catalign.training.calibration import plans
+from catalign.training.calibration import BOOSTING, Samples, fit, plans
 
 runner = CliRunner()
 
@@ -39,7 +39,7 @@ def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
     card = calibrator.card
     assert card["command"].startswith("catalign calibrate")
     assert card["data"]["answers"] >= 4 and card["data"]["pose_modes"] == ["upright"]
-    assert set(card["coefficients"]) == set(SIGNALS)
+    assert set(card["importances"]) == set(SIGNALS)
     assert 0.0 <= card["in_sample"]["ece"] <= 1.0
 
     # Its samples are saved beside it: a refit from them needs no views and fits the same.
@@ -48,7 +48,8 @@ def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
     refit = runner.invoke(app, ["calibrate", "--out", str(again), "--samples", samples])
     assert refit.exit_code == 0, refit.output
     refitted = Calibrator.load(again / "calibrator.json")
-    np.testing.assert_allclose(refitted.coef, calibrator.coef, rtol=1e-6)
+    rows = Samples.load(out / "samples.npz").matrix()
+    np.testing.assert_allclose(refitted.probabilities(rows), calibrator.probabilities(rows))
 
     # The engine reads it from the weights' folder and every answer gets a probability.
     extractor = LearnedExtractor()
@@ -77,7 +78,7 @@ def test_the_shipped_calibrator_matches_this_code_and_saw_no_validation_chair() 
         pytest.skip("model_store/ ships no confidence calibrator")
     data = json.loads(path.read_text())
     assert data["signals"] == list(SIGNALS)
-    assert np.all(np.asarray(data["scale"]) > 0)
+    assert len(Calibrator.load(path).trees) == data["card"]["boosting"]["n_estimators"]
     chairs = data["card"]["data"]["chair_ids"]
     assert len(chairs) >= 50
     assert all(split_of(chair) == "train" for chair in chairs)  # never a validation chair
@@ -95,3 +96,25 @@ def test_every_training_chair_is_observed_once_in_each_setting() -> None:
         inside = set(seen) <= set(library) if setting == "same" else not set(seen) & set(library)
         assert inside, setting
         assert len(library) in ((61,) if setting == "same" else (45, 46)), setting
+
+
+def test_the_exported_trees_give_scikit_learns_probabilities() -> None:
+    """The calibrator walks the trees itself (no scikit-learn at query time): it must agree
+    with the fitted model it was exported from, on the samples and on new rows."""
+    from sklearn.ensemble import GradientBoostingClassifier
+
+    rng = np.random.default_rng(0)
+    samples = Samples()
+    rows = rng.uniform(0.0, 1.0, size=(400, len(SIGNALS)))
+    right = rows[:, 0] + 0.5 * rows[:, 5] * rows[:, 8] + rng.normal(0, 0.2, 400) > 0.8
+    samples.rows, samples.right = rows.tolist(), right.tolist()
+    samples.kinds, samples.chairs = ["upright/same/winner"] * 400, ["c"] * 400
+
+    calibrator = fit(samples)
+    reference = GradientBoostingClassifier(**BOOSTING).fit(rows, right)
+    fresh = rng.uniform(-0.5, 1.5, size=(200, len(SIGNALS)))
+    for x in (rows, fresh):
+        np.testing.assert_allclose(
+            calibrator.probabilities(x), reference.predict_proba(x)[:, 1], atol=1e-12
+        )
+    assert len(calibrator.trees) == BOOSTING["n_estimators"]

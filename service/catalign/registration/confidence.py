@@ -5,10 +5,14 @@ category-level metric (:mod:`catalign.evaluation.metrics`). No single statistic 
 answer from a quarter turn or a near-twin's pose (fitness does not), but together they do: how
 much of the query the pose explains and how much of the model it covers, how far ahead it is of
 the best pose of another heading and of another model, whether ``up`` was given, how many key
-points the view has. A logistic regression on these :class:`Evidence` signals, fitted on views
-of the *training* chairs (``catalign calibrate``, :mod:`catalign.training.calibration`), turns
-them into a probability; it is stored as JSON beside the weights (``confidence/``), and applying
-it takes a dot product.
+points the view has. Gradient-boosted regression trees on these :class:`Evidence` signals,
+fitted on views of the *training* chairs (``catalign calibrate``,
+:mod:`catalign.training.calibration`), turn them into a probability. Trees, not a logistic
+regression: whether an answer is right depends on the signals together (a high fitness is
+worth less when the view spans little of the model), and on the validation views the trees
+rank right answers above wrong ones better (``docs/evaluation.md``). They are stored as JSON
+beside the weights (``confidence/``): applying them walks a few hundred small trees, with no
+scikit-learn at query time.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +29,7 @@ import numpy as np
 from catalign.errors import ConfigError
 
 CALIBRATOR_FILE = "calibrator.json"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 # Margins are capped: an answer ten times behind another is as wrong as one twice behind.
 MAX_MARGIN = 2.0
 # A span over the model's extent past this is stray points, not more of the chair.
@@ -97,15 +102,41 @@ class Evidence:
 
 
 @dataclass(frozen=True)
+class Tree:
+    """One regression tree: its nodes as scikit-learn's ``tree_`` holds them (node 0 the root,
+    a leaf's children -1; a row goes left where its ``feature`` is at most ``threshold``,
+    compared in float32 as scikit-learn compares them)."""
+
+    feature: np.ndarray
+    threshold: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    value: np.ndarray
+
+    def to_json(self) -> dict[str, list]:
+        return {name: getattr(self, name).tolist() for name in TREE_ARRAYS}
+
+    @classmethod
+    def from_json(cls, data: dict[str, list]) -> Tree:
+        arrays = {name: np.asarray(data[name]) for name in TREE_ARRAYS}
+        for name in ("feature", "left", "right"):
+            arrays[name] = arrays[name].astype(np.int64)
+        return cls(**arrays)
+
+
+TREE_ARRAYS = ("feature", "threshold", "left", "right", "value")
+
+
+@dataclass(frozen=True)
 class Calibrator:
-    """A fitted logistic regression over standardised :data:`SIGNALS`.
+    """Gradient-boosted trees over :data:`SIGNALS`: the log-odds of being right are
+    ``baseline`` plus ``learning_rate`` times the sum of the trees' values.
 
     ``card`` records how it was fitted (command, data, counts, in-sample quality)."""
 
-    mean: np.ndarray
-    scale: np.ndarray
-    coef: np.ndarray
-    intercept: float
+    baseline: float
+    learning_rate: float
+    trees: tuple[Tree, ...]
     card: dict[str, Any]
 
     def probability(self, evidence: Evidence) -> float:
@@ -114,23 +145,57 @@ class Calibrator:
 
     def probabilities(self, rows: np.ndarray) -> np.ndarray:
         """The probability of each row of :data:`SIGNALS` values."""
-        logits = ((rows - self.mean) / self.scale) @ self.coef + self.intercept
+        logits = self.baseline + self.learning_rate * self.tree_sums(rows)
         return 1.0 / (1.0 + np.exp(-np.clip(logits, -50.0, 50.0)))
+
+    def tree_sums(self, rows: np.ndarray) -> np.ndarray:
+        """The sum over the trees of the leaf each row reaches: every tree walked at once, a
+        level a step (a query reads a few answers' confidences; tree by tree it cost
+        milliseconds)."""
+        feature, threshold, left, right, value, roots = self._forest
+        rows = np.asarray(rows, dtype=np.float32).reshape(-1, len(SIGNALS))
+        node = np.broadcast_to(roots, (len(rows), len(roots))).copy()
+        at_row = np.arange(len(rows))[:, None]
+        inner = left[node] >= 0
+        while inner.any():
+            go_left = rows[at_row, feature[node]] <= threshold[node]
+            node = np.where(inner, np.where(go_left, left[node], right[node]), node)
+            inner = left[node] >= 0
+        return value[node].sum(axis=1)
+
+    @cached_property
+    def _forest(self) -> tuple[np.ndarray, ...]:
+        """The trees' nodes in one set of arrays (children numbered across trees) and each
+        tree's root."""
+        sizes = [len(tree.value) for tree in self.trees]
+        roots = np.cumsum([0, *sizes[:-1]]).astype(np.int64)
+
+        def children(name: str) -> np.ndarray:
+            parts = [getattr(t, name) for t in self.trees]
+            return np.concatenate(
+                [np.where(p >= 0, p + r, -1) for p, r in zip(parts, roots, strict=True)]
+            )
+
+        feature = np.concatenate([np.maximum(t.feature, 0) for t in self.trees])
+        threshold = np.concatenate([t.threshold for t in self.trees])
+        value = np.concatenate([t.value for t in self.trees])
+        return feature, threshold, children("left"), children("right"), value, roots
 
     def save(self, folder: Path) -> Path:
         """Write ``folder/calibrator.json``; its path."""
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / CALIBRATOR_FILE
-        data = {
+        header = {
             "format_version": FORMAT_VERSION,
             "signals": list(SIGNALS),
-            "mean": self.mean.tolist(),
-            "scale": self.scale.tolist(),
-            "coef": self.coef.tolist(),
-            "intercept": self.intercept,
+            "baseline": self.baseline,
+            "learning_rate": self.learning_rate,
             "card": self.card,
         }
-        path.write_text(json.dumps(data, indent=2) + "\n")
+        # The header indented for a reader, then one tree a line.
+        trees = ",\n".join(f"    {json.dumps(tree.to_json())}" for tree in self.trees)
+        text = json.dumps(header, indent=2)[:-2] + f',\n  "trees": [\n{trees}\n  ]\n}}\n'
+        path.write_text(text)
         return path
 
     @classmethod
@@ -142,16 +207,16 @@ class Calibrator:
             raise ConfigError(f"cannot read the confidence calibrator {path}: {error}") from None
         if data.get("format_version") != FORMAT_VERSION or data.get("signals") != list(SIGNALS):
             raise ConfigError(
-                f"the confidence calibrator {path} was fitted on other signals; fit it again "
-                "with `catalign calibrate`"
+                f"the confidence calibrator {path} was fitted on other signals or by another "
+                "version; fit it again with `catalign calibrate` (`--samples` refits from the "
+                "samples beside it)"
             )
-        return cls(
-            mean=np.asarray(data["mean"], dtype=np.float64),
-            scale=np.asarray(data["scale"], dtype=np.float64),
-            coef=np.asarray(data["coef"], dtype=np.float64),
-            intercept=float(data["intercept"]),
-            card=data.get("card", {}),
-        )
+        try:
+            trees = tuple(Tree.from_json(tree) for tree in data["trees"])
+            baseline, rate = float(data["baseline"]), float(data["learning_rate"])
+        except (KeyError, TypeError, ValueError) as error:
+            raise ConfigError(f"the confidence calibrator {path} is damaged: {error}") from None
+        return cls(baseline, rate, trees, card=data.get("card", {}))
 
 
 def find_calibrator(model_dir: Path) -> Calibrator | None:
