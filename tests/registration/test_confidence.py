@@ -112,7 +112,14 @@ def test_a_calibrator_of_other_signals_is_refused_with_a_sentence(tmp_path: Path
     with pytest.raises(ConfigError, match="cannot read"):
         Calibrator.load(path)
     data["signals"] = list(SIGNALS)
-    del data["trees"]
-    path.write_text(json.dumps(data))
-    with pytest.raises(ConfigError, match="damaged"):
-        Calibrator.load(path)
+    tree = data["trees"][0]
+    damaged = [
+        {k: v for k, v in data.items() if k != "trees"},  # no trees at all
+        data | {"trees": [tree | {"left": [1, -1]}]},  # arrays of different lengths
+        data | {"trees": [tree | {"right": [7, -1, -1]}]},  # a child outside the tree
+        data | {"trees": [tree | {"feature": [99, -2, -2]}]},  # a signal that does not exist
+    ]
+    for broken in damaged:
+        path.write_text(json.dumps(broken))
+        with pytest.raises(ConfigError, match="damaged"):
+            Calibrator.load(path)

@@ -118,9 +118,19 @@ class Tree:
 
     @classmethod
     def from_json(cls, data: dict[str, list]) -> Tree:
-        arrays = {name: np.asarray(data[name]) for name in TREE_ARRAYS}
+        """A tree read back; ValueError when its nodes do not make one (a damaged file must
+        fail when loaded, not in a query)."""
+        arrays = {name: np.asarray(data[name], dtype=np.float64) for name in TREE_ARRAYS}
+        if len({a.shape for a in arrays.values()}) != 1 or arrays["value"].ndim != 1:
+            raise ValueError("a tree's node arrays differ in length")
         for name in ("feature", "left", "right"):
             arrays[name] = arrays[name].astype(np.int64)
+        size, inner = len(arrays["value"]), arrays["left"] >= 0
+        children = np.concatenate([arrays["left"][inner], arrays["right"][inner]])
+        if size == 0 or np.any((children <= 0) | (children >= size)):
+            raise ValueError("a tree's children point outside it")
+        if np.any((arrays["feature"][inner] < 0) | (arrays["feature"][inner] >= len(SIGNALS))):
+            raise ValueError("a tree splits on a signal that does not exist")
         return cls(**arrays)
 
 
