@@ -79,7 +79,7 @@ class Evidence:
     keypoints: int
 
     def row(self) -> list[float]:
-        """The regression's inputs in :data:`SIGNALS` order: margins capped, the key points
+        """The calibrator's inputs in :data:`SIGNALS` order: margins capped, the key points
         on a log scale."""
         return [
             self.score,
@@ -97,7 +97,7 @@ class Evidence:
         ]
 
     def signals(self) -> dict[str, float]:
-        """The regression's inputs, by name."""
+        """The calibrator's inputs, by name."""
         return dict(zip(SIGNALS, self.row(), strict=True))
 
 
