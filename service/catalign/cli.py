@@ -242,6 +242,9 @@ def train_orientation(
             help="Networks to train: both, up or heading (the other keeps --init-from's weights)."
         ),
     ] = "both",
+    fused_share: Annotated[
+        float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
+    ] = 0.0,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -264,6 +267,7 @@ def train_orientation(
         up_frame=up_frame,
         init_from=init_from,
         networks=networks,
+        fused_share=fused_share,
     )
     with exit_on_error():
         card = run(config, SharedChairs(chairs_dir))

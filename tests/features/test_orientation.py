@@ -23,6 +23,7 @@ from catalign.features.orientation import (
     peaks,
     principal_frames,
 )
+from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation
 from catalign.training.orientation import (
     OrientationConfig,
@@ -122,6 +123,26 @@ def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path, up_frame: 
     headings = proposer.headings([points, points[:100]], 2)
     assert [len(h) for h in headings] == [2, 2]
     assert all(-np.pi <= p.value <= np.pi for h in headings for p in h)
+
+
+def test_fused_views_see_more_of_the_chair_than_single_ones() -> None:
+    """A fused view is the union of several cameras' views of one placed chair: it spans more
+    of the chair than one camera does, at the same pose."""
+    shapes = [procedural_shape(0)]
+    options = {"view_points": 4096, "so3_share": 0.0, "floor_share": 0.0, "progress": False}
+    single = render_views(shapes, 6, seed=3, **options)
+    fused = render_views(shapes, 6, seed=3, fused_share=1.0, **options)
+    unchanged = render_views(shapes, 6, seed=3, fused_share=0.0, **options)
+
+    np.testing.assert_array_equal(unchanged.points, single.points)
+    np.testing.assert_array_equal(fused.rotations, single.rotations)
+    cells = [
+        [len(voxel_downsample(v.points[i].astype(np.float64), 0.05)[0]) for i in range(6)]
+        for v in (single, fused)
+    ]
+    assert (np.array(cells[1]) > np.array(cells[0])).all(), cells
+    config = OrientationConfig(fused_share=0.3)
+    assert "--fused-share 0.3" in config.command()
 
 
 def _one_step_run(folder: Path, **options: object) -> None:

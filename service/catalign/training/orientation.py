@@ -2,8 +2,10 @@
 
 The data are views the evaluation could have made, of training shapes only: every shape is
 rendered ``views_per_shape`` times by a random camera, the chair upright (a share of them with
-a ring of floor kept) or in any rotation, with sensor noise. Views are rendered once and
-cached; each step then draws fresh variations of them, so a few thousand views go a long way:
+a ring of floor kept) or in any rotation, with sensor noise (a ``fused_share`` of them by 2 to
+4 cameras at once, as a scan reconstructed from a moving sensor sees a chair). Views are
+rendered once and cached; each step then draws fresh variations of them, so a few thousand
+views go a long way:
 
 * for the **up** network, a random rotation of the whole view (label: the chair's up turned
   with it) and a random number of points (a sparse sensor, a decimated scan); with
@@ -70,6 +72,9 @@ class OrientationConfig(BaseModel):
     min_points: int = Field(300, ge=16, description="fewest points a training sample keeps")
     so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
     floor_share: float = Field(0.25, ge=0, le=1, description="upright views with floor kept")
+    fused_share: float = Field(
+        0.0, ge=0, le=1, description="views fused from 2 to 4 cameras, as a reconstruction is"
+    )
     tilt_deg: float = Field(10.0, ge=0, description="error of the up the heading net is given")
     label_sigma_deg: float = Field(10.0, gt=0)
     seed: int = 0
@@ -98,6 +103,7 @@ class OrientationConfig(BaseModel):
             + ("" if self.learning_rate == 2e-3 else f" --learning-rate {self.learning_rate:g}")
             + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
             + ("" if self.networks == "both" else f" --networks {self.networks}")
+            + ("" if self.fused_share == 0 else f" --fused-share {self.fused_share:g}")
         )
 
 
@@ -129,10 +135,13 @@ def render_views(
     view_points: int,
     so3_share: float,
     floor_share: float,
+    fused_share: float = 0.0,
     progress: bool = True,
 ) -> ViewSet:
     """``views_per_shape`` noisy partial views of each metric shape, as the evaluation makes
-    them (an upright share, some with floor, the rest in any rotation)."""
+    them (an upright share, some with floor, the rest in any rotation); a ``fused_share`` of
+    them is the union of 2 to 4 cameras' views, as a scan fused from a moving sensor is (a
+    ScanNet chair is seen from most sides, a single depth image from one)."""
     points, counts, rotations = [], [], []
     jobs = [(s, v) for s in range(len(shapes)) for v in range(views_per_shape)]
     for s, v in tqdm(jobs, desc="render views", unit="view", disable=not progress):
@@ -141,7 +150,13 @@ def render_views(
         mode = "so3" if rng.random() < so3_share else "upright"
         pose = random_object_pose(rng, mode, height=shape.height / 2)
         floor = Floor() if mode == "upright" and rng.random() < floor_share else None
-        seen = render_view(shape, pose, random_camera(pose[:3, 3], rng), rng, floor=floor)
+        cameras = int(rng.integers(2, 5)) if fused_share and rng.random() < fused_share else 1
+        seen = np.vstack(
+            [
+                render_view(shape, pose, random_camera(pose[:3, 3], rng), rng, floor=floor)
+                for _ in range(cameras)
+            ]
+        )
         if len(seen) < 16:
             continue
         order = rng.permutation(len(seen))[:view_points]
@@ -295,7 +310,13 @@ def run(config: OrientationConfig, chairs: SharedChairs, progress: bool = True) 
     else:
         shapes = [to_metric(chairs.load(i)) for i in train_ids]
         shapes += list(ProceduralChairs(config.procedural))
-        views = render_views(shapes, config.views_per_shape, seed=config.seed, **_rendering(config))
+        views = render_views(
+            shapes,
+            config.views_per_shape,
+            seed=config.seed,
+            fused_share=config.fused_share,
+            **_rendering(config),
+        )
         views.save(cache)
     held_out_shapes = [to_metric(chairs.load(i)) for i in val_ids]
     held_out = render_views(held_out_shapes, 4, seed=HELD_OUT_SEED, **_rendering(config))
