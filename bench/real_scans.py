@@ -2,7 +2,8 @@
 
 There is no CAD pose for them (``../shared/data/real_scans/README.md``), so the table reports
 what can be judged: the model chosen, how far the answer tilts the chair from standing upright
-(+Z), the fit (fitness and inlier ratio over the points kept) and the points set aside.
+(+Z), the fit (fitness and inlier ratio over the points kept), the answer's confidence (does
+it warn when the chair comes back lying down?) and the points set aside.
 
 A second table asks whether the answer moves with the sensor: each scan is also registered after
 ``--motions`` random rigid motions (20 to 60 degrees about a random axis, a shift of about a
@@ -111,25 +112,36 @@ def main() -> None:
         f"weights {extractor.fingerprint[:12]}; load average {load_average():.2f}. Tilt: degrees "
         "between the posed model's up and +Z (0 = standing upright).",
         "",
-        "| scan | points | `up` | model | tilt deg | fitness | inlier ratio | set aside | ms |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| scan | points | `up` | model | tilt deg | fitness | inlier ratio | confidence "
+        "| set aside | ms |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     scans = {path.stem: np.load(path).astype(np.float64) for path in files}
     upright = {"given": 0, "estimated": 0}
+    lying_confidence = {"given": [], "estimated": []}  # of answers more than 10 degrees off
     for name, points in scans.items():
         for label, up in (("given", WORLD_UP), ("estimated", None)):
             result = engine.register(points, up=up, seed=0)
             tilt = tilt_deg(result.pose[:3, :3])
             upright[label] += tilt <= 10.0
+            if tilt > 10.0:
+                lying_confidence[label].append(result.confidence or 0.0)
             lines.append(
                 f"| {name} | {len(points)} | {label} | {result.model_id} | {tilt:.1f} | "
-                f"{result.fitness:.2f} | {result.inlier_ratio:.2f} | {result.points_set_aside} | "
+                f"{result.fitness:.2f} | {result.inlier_ratio:.2f} | "
+                f"{_or_dash(result.confidence)} | {result.points_set_aside} | "
                 f"{sum(result.timings_ms.values()):.0f} |"
             )
     lines += [
         "",
         f"Upright within 10 degrees: {upright['given']} of {len(files)} with `up`, "
-        f"{upright['estimated']} of {len(files)} without.",
+        f"{upright['estimated']} of {len(files)} without. Highest confidence of an answer "
+        "more than 10 degrees from upright: "
+        + ", ".join(
+            f"{_or_dash(max(found, default=None))} {label}"
+            for label, found in lying_confidence.items()
+        )
+        + ".",
         "",
         f"Under {args.motions} random rigid motions of each scan (`up`, when given, moved "
         "along), and with another random seed (1 instead of 0):",
@@ -144,6 +156,10 @@ def main() -> None:
         for label, with_up in (("given", True), ("none", False)):
             lines.append(f"| {text} | {label} | {stability(moved, scans, moves, with_up)} |")
     publish("\n".join(lines) + "\n", args.out)
+
+
+def _or_dash(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 if __name__ == "__main__":

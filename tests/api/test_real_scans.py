@@ -11,7 +11,8 @@ alternative more confident by over ``confidence_margin`` and promoted it (3 of 4
 trees rate the two alike (0.63 and 0.59). Without ``up`` the orientation proposals, trained on
 synthetic views only, miss on some of these decimated reconstructions: 6 of 10 come back
 upright, and no two copies get the same model (``bench/results/real_scans.md``), short of the
-goal of every scan; the checks guard the measured state.
+goal of every scan; the checks guard the measured state. The four that lie down say so: their
+confidence is low enough for a caller's ``min_confidence`` to refuse them.
 """
 
 from __future__ import annotations
@@ -81,6 +82,20 @@ def test_the_chairs_come_back_standing_upright(
     tilts = {name: round(tilt_deg(answers[name, with_up]), 1) for name in scans}
     assert sum(t <= 10.0 for t in tilts.values()) >= UPRIGHT[with_up], tilts
     assert all(answers[name, with_up].up_estimated is not with_up for name in scans)
+
+
+@pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
+def test_an_answer_lying_down_says_so_with_a_low_confidence(
+    answers: dict[tuple[str, bool], AlignResult], scans: dict[str, np.ndarray], with_up: bool
+) -> None:
+    """A caller gating on ``min_confidence=0.5`` acts on none of the chairs that came back
+    lying down (four of ten without ``up``, their confidence 0.22 at most)."""
+    lying = {
+        name: round(answers[name, with_up].confidence, 2)
+        for name in scans
+        if tilt_deg(answers[name, with_up]) > 10.0
+    }
+    assert all(confidence < 0.5 for confidence in lying.values()), lying
 
 
 @pytest.mark.parametrize(
