@@ -62,6 +62,7 @@ DEFAULTS = {
     "alternatives": 3,
     "confidence_margin": 0.2,
     "exact_fitness": 0.9,
+    "sure_fitness": 0.95,
     "fine_cells": 4,
     "pass_voxels": 32_000,
     "model_cache": 256,

@@ -187,6 +187,12 @@ class EngineConfig(BaseModel):
     exact_fitness: float = Field(default=0.9, ge=0, le=1)
     """The share of the query within one ICP distance of the model above which the model is
     taken to be the observed instance itself, and its fitted pose is not recentred."""
+    sure_fitness: float = Field(default=0.95, ge=0, le=1)
+    """The share above which a fit is sure: below it, an exact fit may be the observed
+    instance turned the wrong way (a view of the underside fits so), and the swept poses are
+    refined too; an answer that fits surely beats one that fits only exactly. At
+    ``exact_fitness`` or below, every exact fit is sure. 0.95 gained 2 *same* views within 10
+    degrees with ``up`` and without (of 108, seeds 0 and 1), lost none (seed 3 too)."""
     fine_cells: int | None = Field(default=FINE_CELLS, ge=1)
     """Cells per voxel edge of the grid a dense query is down-sampled to first (None:
     never)."""

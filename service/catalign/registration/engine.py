@@ -30,10 +30,11 @@ stage names the HTTP answer's ``timings_ms`` documents (two steps may share a na
 
 5. **refine** (:mod:`~catalign.registration.refine`, ``icp_score``): ICP for the ``refine`` best
    poses of all orientations and the best pose of each further distinct answer (the best
-   swept answers too when none of them fits exactly), scored again the same way; the best of
-   the first wins, unless answers fit exactly (``exact_fitness``: the observed instance
-   itself), when the best of those does (with ``rival_models``, unless another leading model
-   fits the query clearly better at its pose: :mod:`~catalign.registration.rivals`);
+   swept answers too when none of them fits surely: ``sure_fitness``), scored again the same
+   way; the best of the first wins, unless answers fit exactly (``exact_fitness``: the
+   observed instance itself), when the best of those does, those that fit surely first
+   (with ``rival_models``, unless another leading model fits the query clearly better at its
+   pose: :mod:`~catalign.registration.rivals`);
 6. **category fit** (:mod:`~catalign.registration.category_fit`, ``icp_score``): with an up, a
    winner that fits loosely (another instance) is refitted at the observed size, stood upright
    and centred on the observed extent; an alternative is only stood upright and centred;
@@ -348,9 +349,11 @@ class Engine:
             return None
         config, clock = self.config, request.clock
         # Refine the best matched poses by ICP and score them again; the best pose of each
-        # further distinct answer is refined too (the alternatives). When none of them fits
-        # exactly, so are the best swept answers, kept only if they then do. The winner is the
-        # best-scored answer that fits exactly, else the best of the refined best matches.
+        # further distinct answer is refined too (the alternatives). Unless one of them fits
+        # surely (``sure_fitness``), so are the best swept answers, kept only if they then fit
+        # exactly: a view of a chair's underside can fit its own CAD exactly turned the wrong
+        # way, and the sweep finds the right turn. The winner is the best-scored answer that
+        # fits surely, else exactly, else the best of the refined best matches.
         with clock("icp_score"):
             matched = [pair for pair in found if not pair[1].hypothesis.swept] or found
             best = matched[: config.refine]
@@ -361,11 +364,13 @@ class Engine:
             ]
             leading = best + others
             refined = [(search, self._refined(search, item, request)) for search, item in leading]
-            if not any(self._exact(pair, request) for pair in refined):
+            if not any(self._sure(pair, request) for pair in refined):
                 for pair, done in self._exact_sweeps(found, request):
-                    leading.append(pair)
-                    refined.append(done)
+                    if not any(done[1] is item for _, item in refined):
+                        leading.append(pair)
+                        refined.append(done)
             exact = [pair for pair in refined if self._exact(pair, request)]
+            exact = [pair for pair in exact if self._sure(pair, request)] or exact
             winner = max(exact or refined[: len(best)], key=lambda pair: pair[1].score)
             challenged = self._challenged(winner, matched)
             if challenged is not winner:  # a rival won; the winner may stay an alternative
@@ -418,12 +423,20 @@ class Engine:
         """Whether a refined pose fits the query as only the observed instance itself does
         (``exact_fitness``; once a call): such a pose beats any that does not, whatever their
         scores."""
+        return self._fitness(pair, request) >= self.config.exact_fitness
+
+    def _sure(self, pair: tuple[Search, Scored], request: Request) -> bool:
+        """Whether a refined pose fits the query so closely (``sure_fitness``) that no other
+        pose need be sought, and one that fits only exactly gives way to it."""
+        return self._fitness(pair, request) >= self.config.sure_fitness
+
+    def _fitness(self, pair: tuple[Search, Scored], request: Request) -> float:
+        """The share of the query a refined pose fits within one ICP distance (once a call)."""
         search, item = pair
         key = id(item.hypothesis)
-        if key not in request.exact:
-            fit = self.refiner.fit(item.hypothesis, search.keypoints)
-            request.exact[key] = fit.fitness >= self.config.exact_fitness
-        return request.exact[key]
+        if key not in request.fitness:
+            request.fitness[key] = self.refiner.fit(item.hypothesis, search.keypoints).fitness
+        return request.fitness[key]
 
     def _exact_sweeps(
         self, found: list[tuple[Search, Scored]], request: Request

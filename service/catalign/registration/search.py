@@ -77,7 +77,7 @@ class Request:
     estimates scale, its seed and clock, and what a second search round (more headings of the
     same orientations) takes over from the first: each model's poses at each view (by the
     view's id: the searches hold their views for the whole call), each pose's refinement (by
-    the pose's id; the entry keeps the pose alive) and whether that fits exactly, all
+    the pose's id; the entry keeps the pose alive) and the share of the query it fits, all
     deterministic."""
 
     k: int | None
@@ -86,7 +86,7 @@ class Request:
     clock: StageClock
     poses: dict[tuple[str, int], list[Hypothesis]] = field(default_factory=dict)
     refined: dict[int, tuple[Hypothesis, Scored]] = field(default_factory=dict)
-    exact: dict[int, bool] = field(default_factory=dict)
+    fitness: dict[int, float] = field(default_factory=dict)
 
 
 class StageClock:
