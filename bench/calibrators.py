@@ -23,7 +23,7 @@ from _report import publish
 
 from catalign.evaluation.metrics import auroc, expected_calibration_error
 from catalign.registration.confidence import SIGNALS
-from catalign.training.calibration import BOOSTING, Samples, fit
+from catalign.training.calibration import Samples, fit
 
 RESULTS = Path(__file__).parent / "results" / "calibrators.md"
 REPORTS = Path(__file__).parents[1] / "docs" / "results"
@@ -42,14 +42,6 @@ def logistic(rows: np.ndarray, right: np.ndarray) -> Scorer:
     return lambda x: model.predict_proba((x - mean) / scale)[:, 1]
 
 
-def boosted(rows: np.ndarray, right: np.ndarray, **changes: object) -> Scorer:
-    """Boosted trees with the shipped settings, some of them changed."""
-    from sklearn.ensemble import GradientBoostingClassifier
-
-    model = GradientBoostingClassifier(**(BOOSTING | changes)).fit(rows, right)
-    return lambda x: model.predict_proba(x)[:, 1]
-
-
 def answers(mode: str, setting: str, seeds: tuple[int, ...]) -> tuple[list, np.ndarray]:
     """The winners' evidence rows (None for a refused view) and whether each is right."""
     rows, right = [], []
@@ -63,8 +55,11 @@ def answers(mode: str, setting: str, seeds: tuple[int, ...]) -> tuple[list, np.n
 
 
 def quality(scorer: Scorer, rows: list, right: np.ndarray) -> tuple[float, float, str]:
-    """ECE, AUROC and the table cell (with what gating at 0.8 keeps)."""
-    p = np.array([0.0 if row is None else scorer(np.array([row]))[0] for row in rows])
+    """ECE, AUROC and the table cell (with what gating at 0.8 keeps); a refused view is a
+    wrong answer with confidence 0."""
+    answered = [i for i, row in enumerate(rows) if row is not None]
+    p = np.zeros(len(rows))
+    p[answered] = scorer(np.array([rows[i] for i in answered]))
     ece, area, gate = expected_calibration_error(p, right), auroc(p, right), p >= 0.8
     kept = f"{100 * right[gate].mean():.0f}" if gate.any() else "-"
     return ece, area, f"{ece:.3f} / {area:.3f} / {kept} / {100 * gate.mean():.0f}"
@@ -77,12 +72,11 @@ def main() -> None:
     args = parser.parse_args()
     samples = Samples.load(args.samples)
     rows, right = samples.matrix(), np.array(samples.right, dtype=bool)
-    shipped = fit(samples)
     kinds: dict[str, Scorer] = {
         "logistic regression": logistic(rows, right),
-        "trees of 8 leaves, any depth": boosted(rows, right, max_depth=None),
-        "trees, leaves of any size": boosted(rows, right, min_samples_leaf=1),
-        "trees (shipped)": shipped.probabilities,
+        "trees of 8 leaves, any depth": fit(samples, max_depth=None).probabilities,
+        "trees, leaves of any size": fit(samples, min_samples_leaf=1).probabilities,
+        "trees (shipped)": fit(samples).probabilities,
     }
     names = list(kinds)
     lines = [

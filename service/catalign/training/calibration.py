@@ -195,8 +195,9 @@ def collect(
     return samples
 
 
-def fit(samples: Samples) -> Calibrator:
-    """Boosted trees on the signals (:data:`BOOSTING`), exported to a
+def fit(samples: Samples, **changes: Any) -> Calibrator:
+    """Boosted trees on the signals (:data:`BOOSTING`, with ``changes`` to its settings: the
+    other shapes ``bench/calibrators.py`` compares), exported to a
     :class:`~catalign.registration.confidence.Calibrator` whose card names the settings and
     each signal's importance."""
     from sklearn.ensemble import GradientBoostingClassifier
@@ -204,7 +205,8 @@ def fit(samples: Samples) -> Calibrator:
     x, y = samples.matrix(), np.array(samples.right, dtype=bool)
     if len(set(y.tolist())) < 2:
         raise ValueError("calibration needs both right and wrong answers; use more views")
-    model = GradientBoostingClassifier(**BOOSTING).fit(x, y)
+    settings = BOOSTING | changes
+    model = GradientBoostingClassifier(**settings).fit(x, y)
     trees = tuple(
         Tree(
             feature=tree.feature.astype(np.int64),
@@ -218,7 +220,7 @@ def fit(samples: Samples) -> Calibrator:
     # The log-odds every tree adds to: the prior's, as scikit-learn starts from it.
     baseline = float(np.log(y.mean() / (1.0 - y.mean())))
     importances = dict(zip(SIGNALS, model.feature_importances_.round(4).tolist(), strict=True))
-    card = {"boosting": BOOSTING, "importances": importances}
+    card = {"boosting": settings, "importances": importances}
     return Calibrator(baseline, float(model.learning_rate), trees, card=card)
 
 
