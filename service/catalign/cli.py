@@ -245,6 +245,12 @@ def train_orientation(
     fused_share: Annotated[
         float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
     ] = 0.0,
+    up_width: Annotated[
+        int | None,
+        typer.Option(
+            min=1, help="Up network width, if not 16 (it starts afresh, not from --init-from)."
+        ),
+    ] = None,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -268,6 +274,7 @@ def train_orientation(
         init_from=init_from,
         networks=networks,
         fused_share=fused_share,
+        up_width=up_width,
     )
     with exit_on_error():
         card = run(config, SharedChairs(chairs_dir))

@@ -195,3 +195,21 @@ def test_a_run_of_one_network_keeps_the_other_as_it_was(tmp_path: Path) -> None:
     assert not all(torch.equal(moved[k], v) for k, v in second.up.state_dict().items())
     with pytest.raises(ValueError, match="the other needs init_from"):
         OrientationConfig(networks="heading")
+
+
+def test_a_wider_up_network_starts_afresh_beside_the_kept_heading_network(
+    tmp_path: Path,
+) -> None:
+    _one_step_run(tmp_path / "first")
+    _one_step_run(tmp_path / "wide", networks="up", init_from=tmp_path / "first", up_width=8)
+    first = load_orientation(tmp_path / "first").model
+    wide = load_orientation(tmp_path / "wide")
+    assert wide.card["architecture"]["up_width"] == 8
+    assert "--up-width 8" in wide.card["command"]
+    assert wide.model.up.config["width"] == 8 and wide.model.heading.config["width"] == 16
+    kept = first.heading.state_dict()
+    assert all(torch.equal(kept[k], v) for k, v in wide.model.heading.state_dict().items())
+    assert len(wide.ups(np.random.default_rng(0).normal(size=(400, 3)), 3)) == 3
+    # The heading network cannot be kept from a run whose heading network has another width.
+    with pytest.raises(ConfigError, match="heading network is kept from init_from"):
+        _one_step_run(tmp_path / "bad", networks="up", init_from=tmp_path / "first", width=8)

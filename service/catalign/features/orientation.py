@@ -132,15 +132,24 @@ class OrientationNet(nn.Module):
 
 class OrientationModel(nn.Module):
     """The up network and the heading network, shipped as one weights file. ``up_frame`` is
-    the frame the up network sees a view in (module docstring)."""
+    the frame the up network sees a view in (module docstring); ``up_width``, when given, is
+    the up network's width (finding up in any rotation asks more of it than a heading does)."""
 
-    def __init__(self, width: int = 16, grid: int = GRID, up_frame: str = "view") -> None:
+    def __init__(
+        self,
+        width: int = 16,
+        grid: int = GRID,
+        up_frame: str = "view",
+        up_width: int | None = None,
+    ) -> None:
         super().__init__()
         if up_frame not in UP_FRAMES:
             raise ValueError(f"up_frame must be one of {UP_FRAMES}, not {up_frame!r}")
         self.config = {"width": width, "grid": grid, "up_frame": up_frame}
+        if up_width is not None:
+            self.config["up_width"] = up_width
         self.up_frame = up_frame
-        self.up = OrientationNet(UP_BINS, width, grid)
+        self.up = OrientationNet(UP_BINS, width if up_width is None else up_width, grid)
         self.heading = OrientationNet(HEADING_BINS, width, grid)
 
 

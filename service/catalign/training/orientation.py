@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
 from catalign.data.views import Floor, random_camera, random_object_pose, render_view
+from catalign.errors import ConfigError
 from catalign.features.orientation import (
     CARD_FILE,
     HEADING_ANGLES,
@@ -63,6 +64,9 @@ class OrientationConfig(BaseModel):
     batch_size: int = Field(64, ge=1)
     learning_rate: float = Field(2e-3, gt=0)
     width: int = Field(16, ge=1, description="channels of the first conv block")
+    up_width: int | None = Field(
+        None, ge=1, description="the up network's width, when not width (heading's stays)"
+    )
     up_frame: Literal["view", "principal"] = Field(
         "view", description="the frame the up network sees a view in"
     )
@@ -104,6 +108,7 @@ class OrientationConfig(BaseModel):
             + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
             + ("" if self.networks == "both" else f" --networks {self.networks}")
             + ("" if self.fused_share == 0 else f" --fused-share {self.fused_share:g}")
+            + ("" if self.up_width is None else f" --up-width {self.up_width}")
         )
 
 
@@ -227,11 +232,11 @@ def train_orientation(
     training data) to ``config.out``."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    model = OrientationModel(width=config.width, up_frame=config.up_frame)
-    if config.init_from is not None:
-        model.load_state_dict(load_orientation(config.init_from).model.state_dict())
-    # Only the trained networks run, so the other gets no gradient and keeps its weights.
+    model = OrientationModel(width=config.width, up_frame=config.up_frame, up_width=config.up_width)
     trained = ("up", "heading") if config.networks == "both" else (config.networks,)
+    if config.init_from is not None:
+        started_from(model, load_orientation(config.init_from).model, trained)
+    # Only the trained networks run, so the other gets no gradient and keeps its weights.
     parameters = [p for name in trained for p in model.get_submodule(name).parameters()]
     optimizer = torch.optim.AdamW(parameters, lr=config.learning_rate, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
@@ -270,6 +275,22 @@ def train_orientation(
         "held_out_accuracy": accuracy,
     }
     return export_orientation(config.out, model, card)
+
+
+def started_from(
+    model: OrientationModel, start: OrientationModel, trained: tuple[str, ...]
+) -> None:
+    """``model``'s networks given ``start``'s weights where they have the same shape; a trained
+    network of another shape (a wider up network) starts afresh, a kept one cannot."""
+    for name in ("up", "heading"):
+        ours, theirs = model.get_submodule(name), start.get_submodule(name)
+        if ours.config == theirs.config:
+            ours.load_state_dict(theirs.state_dict())
+        elif name not in trained:
+            raise ConfigError(
+                f"the {name} network is kept from init_from, but its shape there "
+                f"({theirs.config}) is not this run's ({ours.config})"
+            )
 
 
 def proposal_accuracy(proposer: OrientationProposer, views: ViewSet) -> dict[str, float]:
