@@ -30,9 +30,9 @@ from catalign.data.shapes import default_chairs_root
 from catalign.features.extractor import LearnedExtractor
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.library.index import load
+from catalign.library.index import Library, load
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.config import parse_options
+from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine
 from catalign.threads import limit_threads
 
@@ -91,7 +91,9 @@ def main() -> None:
     parser.add_argument("--model-dir", type=Path, default=None)
     parser.add_argument("--library", type=Path, default=DEFAULT_MODEL_DIR / "library")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--motions", type=int, default=8)
+    parser.add_argument(
+        "--motions", type=int, default=8, help="rigid motions of each scan (0: no such table)"
+    )
     parser.add_argument("--configs", nargs="+", default=["default"])
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -142,20 +144,36 @@ def main() -> None:
             for label, found in lying_confidence.items()
         )
         + ".",
+    ]
+    if args.motions > 0:
+        lines += stability_table(extractor, engine.library, configs, scans, args.motions)
+    publish("\n".join(lines) + "\n", args.out)
+
+
+def stability_table(
+    extractor: LearnedExtractor,
+    library: Library,
+    configs: dict[str, EngineConfig],
+    scans: dict[str, np.ndarray],
+    count: int,
+) -> list[str]:
+    """The lines of the table of answers under ``count`` rigid motions and another seed, one
+    row per engine configuration and way of giving ``up``."""
+    lines = [
         "",
-        f"Under {args.motions} random rigid motions of each scan (`up`, when given, moved "
+        f"Under {count} random rigid motions of each scan (`up`, when given, moved "
         "along), and with another random seed (1 instead of 0):",
         "",
         "| engine options | `up` | moved answers | same model | same model and pose "
         "(2 deg, 2 cm) | same model, seed 1 |",
         "|---|---|---|---|---|---|",
     ]
-    moves = motions(args.motions)
+    moves = motions(count)
     for text, config in configs.items():
-        moved = Engine(extractor, engine.library, config=config)
+        moved = Engine(extractor, library, config=config)
         for label, with_up in (("given", True), ("none", False)):
             lines.append(f"| {text} | {label} | {stability(moved, scans, moves, with_up)} |")
-    publish("\n".join(lines) + "\n", args.out)
+    return lines
 
 
 def _or_dash(value: float | None) -> str:
