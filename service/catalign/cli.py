@@ -69,6 +69,14 @@ def evaluate(
             help="Tell the method that world +Z is up (default: on for upright only).",
         ),
     ] = None,
+    up_error: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            max=90.0,
+            help="Tilt the up the method is told by this many degrees (an imprecise IMU).",
+        ),
+    ] = 0.0,
     floor: Annotated[
         bool,
         typer.Option(
@@ -104,6 +112,9 @@ def evaluate(
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
         if pose_mode not in VIEW_MODES:
             raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright, so3 or turned")
+        up_given = (pose_mode == "upright") if up_prior is None else up_prior
+        if up_error and not up_given:
+            raise ConfigError("--up-error tilts the up the method is told: it needs --up-prior")
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]
@@ -112,13 +123,14 @@ def evaluate(
             seed=seed,
             pose_mode=pose_mode,  # type: ignore[arg-type]
             model_dir=model_dir,
-            up_prior=(pose_mode == "upright") if up_prior is None else up_prior,
+            up_prior=up_given,
+            up_error_deg=up_error,
             floor=floor,
             table=table,
             engine=engine_config,
         )
         report = evaluate(config, SharedChairs(chairs_dir))
-    prior = "" if config.up_prior else "-no-up"
+    prior = ("" if config.up_prior else "-no-up") + (f"-up-error{up_error:g}" if up_error else "")
     kept = ("-floor" if floor else "") + ("-table" if table else "")
     path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}{kept}.json"
     write_report(report, path)

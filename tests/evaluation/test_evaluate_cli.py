@@ -11,6 +11,7 @@ from catalign.cli import app
 from catalign.data.shapes import procedural_shape
 from catalign.evaluation.protocol import build_cases
 from catalign.evaluation.report import COLUMNS
+from catalign.evaluation.runner import given_up
 from catalign.geometry.se3 import transform
 from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.confidence import SIGNALS, find_calibrator
@@ -233,3 +234,16 @@ def test_engine_options_reach_the_engine_and_the_report(chairs_root: Path, tmp_p
     for case in cases:
         row = np.array([[case["evidence"][name] for name in SIGNALS]])
         assert calibrator.probabilities(row)[0] == pytest.approx(case["confidence"])
+
+
+def test_an_up_error_needs_an_up_to_tilt():
+    result = runner.invoke(app, ["evaluate", "--pose-mode", "so3", "--up-error", "5"])
+    assert result.exit_code == 2
+    assert "--up-error tilts the up the method is told: it needs --up-prior" in result.output
+
+
+def test_the_up_told_is_tilted_by_the_up_error():
+    for error in (0.0, 5.0, 10.0):
+        up = given_up(error)
+        assert np.isclose(np.linalg.norm(up), 1.0)
+        assert np.isclose(np.degrees(np.arccos(up @ np.array([0.0, 0.0, 1.0]))), error, atol=1e-6)
