@@ -23,6 +23,7 @@ DEFAULTS = {
     "icp_points": 600,
     "icp_coarse_points": None,
     "up_tolerance_deg": 30.0,
+    "up_snap_deg": None,
     "min_points": 50,
     "up_proposals": 3,
     "up_mass": 0.5,

@@ -202,3 +202,12 @@ def test_a_plane_with_nothing_standing_on_it_is_no_floor(
     oriented = oriented_by(points, WORLD_UP if given else None, proposer, min_voxels=50)
     assert not oriented.floor.any()
     assert all(len(cloud) == len(points) for cloud in proposer.levelled)
+
+
+def test_a_given_up_is_snapped_to_the_seat_only_when_asked(box_chair: Shape) -> None:
+    points = view(box_chair)
+    off = tilted(WORLD_UP, 6.0)  # an imprecise IMU
+    [kept] = oriented_by(points, off, None).orientations
+    assert angle_deg(kept.up, off) < 1e-6
+    [snapped] = oriented_by(points, off, None, given_snap_deg=10.0).orientations
+    assert snapped.given and angle_deg(snapped.up, WORLD_UP) < 1.5

@@ -64,6 +64,12 @@ class EngineConfig(BaseModel):
     real scan's pose moved more with the sensor: off by default."""
     up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
     """How far the chair's up may tilt from the given ``up`` in the three-point search."""
+    up_snap_deg: float | None = Field(default=None, gt=0, le=30)
+    """With ``up`` given, snap it to the largest plane within this many degrees of it (a seat,
+    the floor), as proposed ups are: for an up known to a few degrees only (an imprecise IMU).
+    Off by default: a seat may slope a few degrees, and snapping an exact up to it costs about
+    4 of 108 *same* views within 10 degrees; an up 5 or 10 degrees off gains 4 and 17 of them
+    (docs/evaluation.md, "An imprecise up")."""
     min_points: int = Field(default=MIN_VOXELS, ge=1)
     """Occupied voxels a query needs."""
     up_proposals: int = Field(default=3, ge=1)

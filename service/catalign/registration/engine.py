@@ -241,6 +241,7 @@ class Engine:
                 voxel=voxel,
                 min_voxels=config.min_points,
                 guessed_ups=() if doubted is None else doubted.guessed_ups,
+                given_snap_deg=config.up_snap_deg,
             )
             kept = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
             kept = kept.without(detached_mask(kept.points), voxel, config.min_points)

@@ -101,6 +101,7 @@ def orient(
     heading_mass: float | None = None,
     up_mass: float | None = None,
     guessed_ups: tuple[tuple[np.ndarray, float], ...] = (),
+    given_snap_deg: float | None = None,
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
     extractor needs without proposals (1 for rotation-invariant features: then no heading is
@@ -109,11 +110,15 @@ def orient(
     before it hold less than that probability mass; ``up_mass`` does the same for proposed
     ups (the others are described at no heading first). ``guessed_ups`` (an earlier
     :class:`Oriented`'s) stand for the proposer's ups and make this a second look, which seeks
-    no floor: the engine's, when a guessed floor may be a chair's back."""
+    no floor: the engine's, when a guessed floor may be a chair's back. ``given_snap_deg``
+    snaps a given ``up`` as a proposed one is, to a plane within that many degrees (an up known
+    to a few degrees only: an imprecise IMU)."""
     given = up is not None
     second_look = bool(guessed_ups)
     if given:
         ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
+        if given_snap_deg is not None:
+            ups = [snap_to_plane(points, ups[0], voxel=voxel, max_deg=given_snap_deg)]
         beliefs = [1.0]
     elif proposer is not None:
         if not guessed_ups:
@@ -182,9 +187,11 @@ def _leading(beliefs: list[float], mass: float | None) -> int:
     return int(np.sum(held < mass))
 
 
-def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.ndarray:
-    """``up`` turned onto the normal of the largest plane of ``points`` within
-    :data:`SNAP_DEG` of it (a seat, a floor, the tops of arms), or left as it is when no such
+def snap_to_plane(
+    points: np.ndarray, up: np.ndarray, *, voxel: float, max_deg: float = SNAP_DEG
+) -> np.ndarray:
+    """``up`` turned onto the normal of the largest plane of ``points`` within ``max_deg``
+    (:data:`SNAP_DEG`) of it (a seat, a floor, the tops of arms), or left as it is when no such
     plane holds :data:`SNAP_SHARE` of the cloud. A proposal is a few degrees off, a seat or a
     floor is level to a degree or two: on the evaluation's so3 views (seed 0) the share of top
     proposals within 5 degrees of the truth went from 48 to 70 %."""
@@ -192,7 +199,7 @@ def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.nda
     if len(cloud) < 3:
         return up
     rng = np.random.default_rng(0)
-    normals, offsets = cone_planes(cloud, up, max_tilt_deg=SNAP_DEG, draws=SNAP_DRAWS, rng=rng)
+    normals, offsets = cone_planes(cloud, up, max_tilt_deg=max_deg, draws=SNAP_DRAWS, rng=rng)
     if len(normals) == 0:
         return up
     inliers = np.abs(cloud @ normals.T - offsets) < SNAP_TOLERANCE_VOXELS * voxel
@@ -200,7 +207,7 @@ def snap_to_plane(points: np.ndarray, up: np.ndarray, *, voxel: float) -> np.nda
     if inliers[:, best].sum() < max(SNAP_MIN_POINTS, SNAP_SHARE * len(cloud)):
         return up
     normal = _plane_normal(cloud[inliers[:, best]], up)
-    return normal if normal @ up >= np.cos(np.radians(SNAP_DEG)) else up
+    return normal if normal @ up >= np.cos(np.radians(max_deg)) else up
 
 
 def _plane_normal(points: np.ndarray, towards: np.ndarray) -> np.ndarray:
