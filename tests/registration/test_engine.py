@@ -94,6 +94,23 @@ def test_up_prior_keeps_the_chair_upright(engine: Engine) -> None:
     assert rotation_error_deg(result.pose[:3, :3], rotation) < 2.0
 
 
+def test_an_up_a_few_degrees_off_is_trusted_unless_snapping_is_asked(engine: Engine) -> None:
+    rotation = axis_angle(np.array([0, 0, 1.0]), 0.7) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
+    points = _observe(2, make_pose(rotation, np.array([1.0, 0.5, 0.45])))
+    off = axis_angle(np.array([0.6, 0.8, 0.0]), np.radians(6.0)) @ np.array([0, 0, 1.0])
+    trusted = engine.register(points, up=off, seed=1)
+    assert np.degrees(np.arccos(np.clip(trusted.up @ off, -1.0, 1.0))) < 1e-3
+    snapping = Engine(
+        engine.extractor,
+        engine.library,
+        config=engine.config.model_copy(update={"up_snap_deg": 10.0}),
+    )
+    snapped = snapping.register(points, up=off, seed=1)
+    assert np.degrees(np.arccos(np.clip(snapped.up @ np.array([0, 0, 1.0]), -1.0, 1.0))) < 1.5
+    assert snapped.model_id == "proc-0002" and not snapped.up_estimated
+    assert rotation_error_deg(snapped.pose[:3, :3], rotation) < 2.0
+
+
 def _centre_error(result, model_entry, observed, pose) -> float:
     """Distance between the chosen model's bounding-box centre, placed by the answer, and the
     observed chair's, placed by the truth: the evaluation's category-level RTE."""
