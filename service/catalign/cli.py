@@ -260,7 +260,7 @@ def train_orientation(
     up_width: Annotated[
         int | None,
         typer.Option(
-            min=1, help="Up network width, if not 16 (it starts afresh, not from --init-from)."
+            min=1, help="Up network width, if not 16 (afresh where --init-from's has another)."
         ),
     ] = None,
     chairs_dir: Annotated[
