@@ -7,7 +7,12 @@ import pytest
 
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.registration.category_fit import CategoryFitter, supported
+from catalign.registration.category_fit import (
+    ROUGH_TILT_DEG,
+    CategoryFitter,
+    rough_up_estimate,
+    supported,
+)
 from catalign.registration.describe import QueryView
 from catalign.registration.gravity import leveller
 from catalign.registration.hypothesise import Hypothesis
@@ -91,6 +96,30 @@ def test_a_tilted_pose_is_stood_upright_about_the_model_centre(fitter, box_chair
     assert np.allclose(upright.transform[:3, :3] @ np.array([0, 1.0, 0]), Z_UP)
     centre = fitter.library["chair"].centre
     assert np.allclose(transform(centre[None], upright.transform), transform(centre[None], tilted))
+
+
+@pytest.mark.parametrize(("rough", "expected"), [(True, 4.0), (False, 8.0)])
+def test_a_rough_up_is_met_half_way_by_the_fit(
+    fitter, box_chair, rough: bool, expected: float
+) -> None:
+    """The fit lies on the chair exactly; the up searched is 8 degrees off it. Given (or
+    snapped to a plane), the up stands the pose; rough, the pose stands half-way."""
+    keypoints = _observe(box_chair.points)
+    off = axis_angle(np.array([1.0, 0, 0]), np.radians(8.0)) @ Z_UP
+    placed = fitter.fit(
+        _hypothesis(POSE, keypoints), keypoints, leveller(off), solid=keypoints, rough_up=rough
+    )
+    up = placed.transform[:3, :3] @ np.array([0, 1.0, 0])
+    assert np.degrees(np.arccos(up @ Z_UP)) == pytest.approx(expected, abs=0.2)
+
+
+def test_a_fit_tilted_far_from_a_rough_up_does_not_move_it() -> None:
+    rough = np.array([0.0, 0.0, 1.0])
+    near = axis_angle(np.array([1.0, 0, 0]), np.radians(ROUGH_TILT_DEG - 1)) @ rough
+    far = axis_angle(np.array([1.0, 0, 0]), np.radians(ROUGH_TILT_DEG + 1)) @ rough
+    halved = np.degrees(np.arccos(rough_up_estimate(rough, near) @ rough))
+    assert halved == pytest.approx((ROUGH_TILT_DEG - 1) / 2)
+    assert np.array_equal(rough_up_estimate(rough, far), rough)
 
 
 def test_only_axes_the_view_spans_whole_are_centred(fitter, box_chair) -> None:

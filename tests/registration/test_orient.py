@@ -89,6 +89,20 @@ def test_a_proposal_with_no_plane_near_it_is_kept(box_chair: Shape) -> None:
     assert np.allclose(snap_to_plane(points, sideways, voxel=VOXEL), sideways)
 
 
+def test_a_proposal_no_plane_confirms_is_searched_as_a_rough_up(box_chair: Shape) -> None:
+    """The seat confirms a proposal 8 degrees off (snapped), none is near one 50 degrees off:
+    that one is kept as proposed and marked rough, also on a second look at the cloud."""
+    points = view(box_chair)
+    proposer = FixedProposer([tilted(WORLD_UP, 8.0), tilted(WORLD_UP, 50.0)], headings=[0.3])
+    oriented = oriented_by(points, None, proposer)
+    snapped, sideways = oriented.orientations
+    assert angle_deg(snapped.up, WORLD_UP) < 1.5 and not snapped.up_rough
+    assert angle_deg(sideways.up, WORLD_UP) == pytest.approx(50.0) and sideways.up_rough
+    other = FixedProposer([WORLD_UP], headings=[0.3])  # a second look asks it for no up
+    again = oriented_by(points, None, other, guessed_ups=oriented.guessed_ups)
+    assert [o.up_rough for o in again.orientations] == [False, True]
+
+
 def test_a_given_up_is_kept_and_its_floor_set_aside(box_chair: Shape) -> None:
     points = view(box_chair, Floor())
     oriented = oriented_by(points, WORLD_UP * 3, None)

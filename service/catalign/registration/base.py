@@ -43,8 +43,10 @@ class Orientation:
     engine's ``heading_mass``, only the confident ones unless the answer there is weak), and
     whether they were proposed (else they are evenly spaced), the belief in the up: the
     proposal's probability mass (1 for a given up or a floor under the cloud), the level
-    of a floor found under the cloud: its height along ``up`` (None without one), and every
-    proposed heading with its probability mass, described or not (empty when none was)."""
+    of a floor found under the cloud: its height along ``up`` (None without one), every
+    proposed heading with its probability mass, described or not (empty when none was), and
+    whether the up is rough: a proposed up no plane confirmed, good to about ten degrees
+    (:class:`~catalign.registration.orient.GuessedUp`)."""
 
     up: np.ndarray | None
     given: bool
@@ -53,6 +55,7 @@ class Orientation:
     belief: float = 1.0
     floor_level: float | None = None
     proposed_headings: tuple[tuple[float, float], ...] = ()
+    up_rough: bool = False
 
     def heading_belief(self, yaw: float, window_deg: float) -> float:
         """The belief in a pose at ``yaw`` (radians about ``up``): the mass of the proposed

@@ -80,6 +80,7 @@ class Finisher:
                 solid=search.solid,
                 floor_level=search.orientation.floor_level,
                 refit=refit,
+                rough_up=search.orientation.up_rough,
             )
             fit = self.refiner.fit(pose, search.keypoints)
         explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
