@@ -89,7 +89,7 @@ def test_an_answer_lying_down_says_so_with_a_low_confidence(
     answers: dict[tuple[str, bool], AlignResult], scans: dict[str, np.ndarray], with_up: bool
 ) -> None:
     """A caller gating on ``min_confidence=0.5`` acts on none of the chairs that came back
-    lying down (four of ten without ``up``, their confidence 0.22 at most)."""
+    lying down (four of ten without ``up``, their confidence 0.15 at most)."""
     lying = {
         name: round(answers[name, with_up].confidence, 2)
         for name in scans
