@@ -257,6 +257,9 @@ def train_orientation(
     fused_share: Annotated[
         float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
     ] = 0.0,
+    so3_share: Annotated[
+        float, typer.Option(help="Share of views rendered in any rotation (the rest upright).")
+    ] = 0.5,
     up_width: Annotated[
         int | None,
         typer.Option(
@@ -286,6 +289,7 @@ def train_orientation(
         init_from=init_from,
         networks=networks,
         fused_share=fused_share,
+        so3_share=so3_share,
         up_width=up_width,
     )
     with exit_on_error():

@@ -145,6 +145,11 @@ def test_fused_views_see_more_of_the_chair_than_single_ones() -> None:
     assert "--fused-share 0.3" in config.command()
 
 
+def test_the_card_command_renders_as_many_views_in_any_rotation() -> None:
+    assert "--so3-share 0.8" in OrientationConfig(so3_share=0.8).command()
+    assert "--so3-share" not in OrientationConfig().command()
+
+
 def _one_step_run(folder: Path, **options: object) -> None:
     """A proposer trained for one step on two views of a procedural chair, in ``folder``."""
     views = render_views(

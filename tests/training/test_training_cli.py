@@ -17,6 +17,7 @@ runner = CliRunner()
     [
         (["train-orientation", "--up-frame", "sideways"], "error: --up-frame: Input should be"),
         (["train-orientation", "--networks", "legs"], "error: --networks: Input should be"),
+        (["train-orientation", "--so3-share", "1.5"], "error: --so3-share: Input should be"),
         (
             ["train-orientation", "--networks", "up"],
             "error: networks=up trains one network: the other needs init_from",

@@ -108,6 +108,7 @@ class OrientationConfig(BaseModel):
             + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
             + ("" if self.networks == "both" else f" --networks {self.networks}")
             + ("" if self.fused_share == 0 else f" --fused-share {self.fused_share:g}")
+            + ("" if self.so3_share == 0.5 else f" --so3-share {self.so3_share:g}")
             + ("" if self.up_width is None else f" --up-width {self.up_width}")
         )
 
