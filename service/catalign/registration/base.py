@@ -46,7 +46,7 @@ class Orientation:
     of a floor found under the cloud: its height along ``up`` (None without one), every
     proposed heading with its probability mass, described or not (empty when none was), and
     whether the up is rough: a proposed up no plane confirmed, good to about ten degrees
-    (:class:`~catalign.registration.orient.GuessedUp`)."""
+    (:class:`~catalign.registration.orient.SearchedUp`)."""
 
     up: np.ndarray | None
     given: bool

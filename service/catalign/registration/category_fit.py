@@ -41,7 +41,7 @@ from catalign.registration.verify import surface_sample
 FULL_SPAN_SHARE = 0.8
 # Sizes of another instance, relative to the model, that the refit considers.
 SIZE_RANGE = (0.8, 1.25)
-# A fit tilted further than this from a rough up is not a chair standing on it, and is levelled.
+# A fit tilted further than this from a rough up is no chair standing on it: the rough up stands.
 ROUGH_TILT_DEG = 20.0
 
 

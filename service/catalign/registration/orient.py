@@ -16,7 +16,7 @@ described. This stage decides how, from the caller's ``up`` and the orientation 
 
 Proposed ups are snapped to the largest plane nearly perpendicular to them
 (:func:`snap_to_plane`): a seat or a floor is level to a degree or two, a proposal only to a
-few. A proposal with no plane near it is searched as it is, marked rough (:class:`GuessedUp`):
+few. A proposal with no plane near it is searched as it is, marked rough (:class:`SearchedUp`):
 the category fit does not stand another instance on it alone. The **floor** is found here
 too, because where the floor is depends on which way is up
 (:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
@@ -65,14 +65,15 @@ GUESSED_FLOOR_SPREAD = (1.0, 2.0)
 
 
 @dataclass(frozen=True)
-class GuessedUp:
-    """A proposed up turned onto the plane near it, or, where none is (``rough``), the up
-    network's own direction: good to about ten degrees, not to the seat's one or two. Its
-    ``belief`` is the proposal's probability mass."""
+class SearchedUp:
+    """An up to search under: its ``direction`` (None: a free search), the ``belief`` in it (a
+    proposal's probability mass; 1 for a given up or a floor), and whether it is ``rough``: a
+    proposed up no plane confirmed, the up network's own direction, good to about ten degrees
+    and not to the seat's one or two."""
 
-    direction: np.ndarray
-    belief: float
-    rough: bool
+    direction: np.ndarray | None
+    belief: float = 1.0
+    rough: bool = False
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ class Oriented:
     orientations: list[Orientation]
     floor: np.ndarray
     first: tuple[int, ...]
-    guessed_ups: tuple[GuessedUp, ...] = ()
+    guessed_ups: tuple[SearchedUp, ...] = ()
 
     @property
     def described_first(self) -> list[Orientation]:
@@ -113,7 +114,7 @@ def orient(
     min_voxels: int = MIN_VOXELS,
     heading_mass: float | None = None,
     up_mass: float | None = None,
-    guessed_ups: tuple[GuessedUp, ...] = (),
+    guessed_ups: tuple[SearchedUp, ...] = (),
     given_snap_deg: float | None = None,
 ) -> Oriented:
     """The orientations to search for ``points`` (module docstring). ``headings`` is what the
@@ -129,75 +130,78 @@ def orient(
     given = up is not None
     second_look = bool(guessed_ups)
     if given:
-        ups: list[np.ndarray | None] = [leveller(up)[1]]  # checked, and of unit length
+        direction = leveller(up)[1]  # checked, and of unit length
         if given_snap_deg is not None:
-            ups = [snap_to_plane(points, ups[0], voxel=voxel, max_deg=given_snap_deg)]
-        beliefs, rough = [1.0], [False]
+            direction = snap_to_plane(points, direction, voxel=voxel, max_deg=given_snap_deg)
+        ups = [SearchedUp(direction)]
     elif proposer is not None:
         if not guessed_ups:
             proposals = proposer.ups(points, up_proposals)
             guessed_ups = tuple(_snapped(points, p.value, p.score, voxel) for p in proposals)
-        ups = [guessed.direction for guessed in guessed_ups]
-        beliefs = [guessed.belief for guessed in guessed_ups]
-        rough = [guessed.rough for guessed in guessed_ups]
+        ups = list(guessed_ups)
     else:
-        ups, beliefs, rough = [None], [1.0], [False]
+        ups = [SearchedUp(None)]
 
     floor = np.zeros(len(points), dtype=bool)
     for index, candidate in enumerate([] if second_look else ups):
-        if candidate is None:
+        if candidate.direction is None:
             continue
         spread = 0.0 if given else GUESSED_FLOOR_SPREAD[min(index, 1)]
         floor = floor_mask(
-            points, candidate, voxel=voxel, min_spread=spread, min_standing=min_voxels
+            points, candidate.direction, voxel=voxel, min_spread=spread, min_standing=min_voxels
         )
         if floor.any():
             if not given:  # the floor's normal is the best up there is: tried first
-                del ups[index], beliefs[index], rough[index]
-                ups.insert(0, _plane_normal(points[floor], candidate))
-                beliefs.insert(0, 1.0)
-                rough.insert(0, False)
+                del ups[index]
+                ups.insert(0, SearchedUp(_plane_normal(points[floor], candidate.direction)))
             break
     kept = points[~floor]
 
-    levels = [float(np.median(points[floor] @ ups[0])) if floor.any() else None]
+    first_up = ups[0].direction
+    levels = [float(np.median(points[floor] @ first_up)) if floor.any() else None]
     levels += [None] * (len(ups) - 1)  # the floor lies under the first up only
     propose = proposer is not None and headings > 1 and heading_proposals is not None
-    if propose and ups[0] is not None:
-        levelled = [kept @ leveller(u).T for u in ups]
+    if propose and first_up is not None:
+        levelled = [kept @ leveller(u.direction).T for u in ups]
         proposed = proposer.headings(levelled, heading_proposals)
         orientations = [
             Orientation(
-                u,
+                u.direction,
                 given,
                 tuple(float(p.value) for p in found),
                 True,
-                belief,
+                u.belief,
                 level,
                 tuple((float(p.value), p.score) for p in found),
-                up_rough=r,
+                up_rough=u.rough,
             )
-            for u, found, belief, level, r in zip(
-                ups, proposed, beliefs, levels, rough, strict=True
-            )
+            for u, found, level in zip(ups, proposed, levels, strict=True)
         ]
         first = tuple(_leading([p.score for p in found], heading_mass) for found in proposed)
     else:
         orientations = [
-            Orientation(u, given, even_headings(headings), False, belief, level, up_rough=r)
-            for u, belief, level, r in zip(ups, beliefs, levels, rough, strict=True)
+            Orientation(
+                u.direction,
+                given,
+                even_headings(headings),
+                False,
+                u.belief,
+                level,
+                up_rough=u.rough,
+            )
+            for u, level in zip(ups, levels, strict=True)
         ]
         first = tuple(len(o.headings) for o in orientations)
     if not given and proposer is not None:
-        searched = _leading(beliefs, up_mass)
+        searched = _leading([u.belief for u in ups], up_mass)
         first = tuple(n if i < searched else 0 for i, n in enumerate(first))
     return Oriented(orientations, floor, first, guessed_ups)
 
 
-def _snapped(points: np.ndarray, proposed: np.ndarray, belief: float, voxel: float) -> GuessedUp:
+def _snapped(points: np.ndarray, proposed: np.ndarray, belief: float, voxel: float) -> SearchedUp:
     """A proposed up snapped to the plane near it (:func:`plane_near`), rough where none is."""
     normal = plane_near(points, proposed, voxel=voxel)
-    return GuessedUp(proposed if normal is None else normal, belief, normal is None)
+    return SearchedUp(proposed if normal is None else normal, belief, normal is None)
 
 
 def _leading(beliefs: list[float], mass: float | None) -> int:
