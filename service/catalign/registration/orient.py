@@ -160,38 +160,30 @@ def orient(
     first_up = ups[0].direction
     levels = [float(np.median(points[floor] @ first_up)) if floor.any() else None]
     levels += [None] * (len(ups) - 1)  # the floor lies under the first up only
-    propose = proposer is not None and headings > 1 and heading_proposals is not None
-    if propose and first_up is not None:
+    propose = first_up is not None and headings > 1 and heading_proposals is not None
+    if propose and proposer is not None:
         levelled = [kept @ leveller(u.direction).T for u in ups]
-        proposed = proposer.headings(levelled, heading_proposals)
-        orientations = [
-            Orientation(
-                u.direction,
-                given,
-                tuple(float(p.value) for p in found),
-                True,
-                u.belief,
-                level,
-                tuple((float(p.value), p.score) for p in found),
-                up_rough=u.rough,
-            )
-            for u, found, level in zip(ups, proposed, levels, strict=True)
+        proposed = [
+            tuple((float(p.value), p.score) for p in found)
+            for found in proposer.headings(levelled, heading_proposals)
         ]
-        first = tuple(_leading([p.score for p in found], heading_mass) for found in proposed)
+        first = tuple(_leading([score for _, score in found], heading_mass) for found in proposed)
     else:
-        orientations = [
-            Orientation(
-                u.direction,
-                given,
-                even_headings(headings),
-                False,
-                u.belief,
-                level,
-                up_rough=u.rough,
-            )
-            for u, level in zip(ups, levels, strict=True)
-        ]
-        first = tuple(len(o.headings) for o in orientations)
+        proposed = [()] * len(ups)
+        first = (len(even_headings(headings)),) * len(ups)
+    orientations = [
+        Orientation(
+            u.direction,
+            given,
+            tuple(value for value, _ in found) if found else even_headings(headings),
+            bool(found),
+            u.belief,
+            level,
+            found,
+            up_rough=u.rough,
+        )
+        for u, found, level in zip(ups, proposed, levels, strict=True)
+    ]
     if not given and proposer is not None:
         searched = _leading([u.belief for u in ups], up_mass)
         first = tuple(n if i < searched else 0 for i, n in enumerate(first))
