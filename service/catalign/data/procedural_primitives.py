@@ -206,15 +206,6 @@ def vertical_slab(
     return loft([np.stack([x, y, np.full_like(x, d)], axis=1) for d in (z0, z1)])
 
 
-def side_slab(
-    outline_zy: FloatArray, x0: float, x1: float, center: ArrayLike = (0.0, 0.0)
-) -> trimesh.Trimesh:
-    """Extrude a side-view outline (z, y) along X between ``x0`` and ``x1``."""
-    cz, cy = center  # type: ignore[misc]
-    z, y = outline_zy[:, 0] + cz, outline_zy[:, 1] + cy
-    return loft([np.stack([np.full_like(z, d), y, z], axis=1) for d in (x0, x1)])
-
-
 def curved_panel(
     width: float, y0: float, y1: float, thickness: float, radius: float, steps: int = 12
 ) -> trimesh.Trimesh:

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 
@@ -53,14 +53,6 @@ class Shape:
     def height(self) -> float:
         """Extent along the canonical up axis (+Y)."""
         return float(np.ptp(self.points[:, 1]))
-
-
-class ShapeSource(Protocol):
-    """Anything that lists shape ids and loads a shape by id."""
-
-    def ids(self) -> list[str]: ...
-
-    def load(self, shape_id: str) -> Shape: ...
 
 
 def stable_fraction(key: str) -> float:

@@ -26,7 +26,6 @@ __all__ = [
     "SparseBatchNorm",
     "SparseConv3d",
     "SparseConvTranspose3d",
-    "SparseReLU",
     "SparseTensor",
     "sparse_cat",
     "sparse_conv",
@@ -281,11 +280,6 @@ class SparseBatchNorm(nn.BatchNorm1d):
 
 def sparse_relu(x: SparseTensor) -> SparseTensor:
     return x.with_features(torch.relu(x.features))
-
-
-class SparseReLU(nn.Module):
-    def forward(self, x: SparseTensor) -> SparseTensor:
-        return sparse_relu(x)
 
 
 def sparse_cat(*tensors: SparseTensor) -> SparseTensor:
