@@ -34,9 +34,9 @@ from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases, frames_of, metric_shapes
 from catalign.features.extractor import LearnedExtractor
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.base import LibraryShape
-from catalign.registration.confidence import find_calibrator
+from catalign.registration.decision.confidence import find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape
 from catalign.threads import limit_threads
 from catalign.training.calibration import (
     CalibrationConfig,

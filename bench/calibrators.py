@@ -22,7 +22,7 @@ import numpy as np
 from _report import publish
 
 from catalign.evaluation.metrics import auroc, expected_calibration_error
-from catalign.registration.confidence import SIGNALS
+from catalign.registration.decision.confidence import SIGNALS
 from catalign.training.calibration import Samples, fit
 
 RESULTS = Path(__file__).parent / "results" / "calibrators.md"

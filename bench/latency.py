@@ -34,10 +34,10 @@ from catalign.data.views import WORLD_UP, camera_at, random_object_pose, render_
 from catalign.features.extractor import LearnedExtractor
 from catalign.geometry.sampling import subsample
 from catalign.library.index import build_procedural, load
-from catalign.registration.base import LibraryShape
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import STAGES, Engine
 from catalign.registration.methods import build_registrar
+from catalign.registration.results import LibraryShape
 from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "latency.md"

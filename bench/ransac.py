@@ -1,4 +1,4 @@
-"""Benchmark of correspondence RANSAC: :func:`catalign.registration.ransac.ransac` (numpy,
+"""Benchmark of correspondence RANSAC: :func:`catalign.registration.stages.ransac.ransac` (numpy,
 vectorised) against Open3D's ``registration_ransac_based_on_correspondence`` as
 ``alignment.ransac_icp`` calls it (edge-length 0.9 and distance checkers, 100,000 iterations,
 confidence 0.999), on the same synthetic correspondences: model points in a 0.5 x 0.9 x 0.5 m box,
@@ -25,8 +25,8 @@ from _report import load_average, publish
 
 from catalign.geometry.se3 import make_pose, random_rotation, rotation_error_deg, transform
 from catalign.registration import alignment
-from catalign.registration.alignment import point_cloud
-from catalign.registration.ransac import ransac
+from catalign.registration.baseline.open3d_recipe import point_cloud
+from catalign.registration.stages.ransac import ransac
 
 INLIER_DISTANCE = 0.03
 

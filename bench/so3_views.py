@@ -31,9 +31,9 @@ from catalign.evaluation.protocol import TestCase, build_cases, frames_of, metri
 from catalign.features.extractor import LearnedExtractor
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
-from catalign.registration.base import LibraryShape, RegistrationResult
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape, RegistrationResult
 from catalign.threads import limit_threads
 from catalign.training.calibration import right_pose
 

@@ -34,10 +34,10 @@ from catalign.evaluation.protocol import (
 )
 from catalign.evaluation.report import summarise
 from catalign.features.extractor import LearnedExtractor
-from catalign.registration.base import LibraryShape
 from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape
 from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "tradeoff.md"

@@ -11,7 +11,7 @@ built once and every setting runs on it. Prints a markdown table and writes it t
 ``bench/results/training-views.md``.
 
     .venv/bin/python bench/training_views.py [--views 4] \
-        [--configs default heading_mass=none rival_models=5]
+        [--configs default heading_mass=none coverage_cell=0.75]
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from catalign.data.shapes import SharedChairs
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases, frames_of, metric_shapes
 from catalign.features.extractor import LearnedExtractor
-from catalign.registration.base import LibraryShape
 from catalign.registration.config import parse_options
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape
 from catalign.threads import limit_threads
 from catalign.training.calibration import plans, right_pose
 

@@ -450,9 +450,9 @@ def serve(
 def _check_serve_paths(model_dir: Path, library: Path, engine: EngineConfig) -> None:
     """Fail in one sentence before start-up when the weights or the library are missing, or
     when the library's engine options are not valid ones."""
+    from catalign.features.weights import CARD_FILE, WEIGHTS_FILE
     from catalign.library.index import info
     from catalign.registration.config import served_config
-    from catalign.training.checkpoint import CARD_FILE, WEIGHTS_FILE
 
     if not (model_dir / WEIGHTS_FILE).is_file() or not (model_dir / CARD_FILE).is_file():
         raise ConfigError(

@@ -26,7 +26,7 @@ import catalign_client as sdk
 from catalign.api import catalign_pb2, catalign_pb2_grpc
 from catalign.api.schemas import acceptance
 from catalign.geometry.se3 import rotation_error_deg, split_scale
-from catalign.registration.confidence import find_calibrator
+from catalign.registration.decision.confidence import find_calibrator
 
 if TYPE_CHECKING:
     from tests.api.conftest import Server, View

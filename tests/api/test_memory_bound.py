@@ -26,7 +26,7 @@ import pytest
 
 from catalign.data.shapes import procedural_shape
 from catalign.geometry.sampling import sample_surface, voxel_downsample
-from catalign.registration.validation import MAX_VOXELS
+from catalign.registration.prepare.validation import MAX_VOXELS
 
 if TYPE_CHECKING:
     from tests.api.conftest import ServerProcess

@@ -4,7 +4,7 @@
 of one chair get one model, and a scan moved by a known transform gets that transform back.
 
 Every scan, moved, gets its motion back, with ``up`` and without: the engine works in the
-query's own frame (:mod:`catalign.registration.frame`). With ``up`` every scan comes back
+query's own frame (:mod:`catalign.registration.prepare.frame`). With ``up`` every scan comes back
 upright, and three of the four copies get proc-0043 (inst29 gets proc-0056, its near-twin in
 the default library; the goal is 4 of 4). Without ``up`` the orientation proposals, trained on
 synthetic views only, miss on some of these decimated reconstructions: 7 of 10 come back

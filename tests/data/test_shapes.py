@@ -22,7 +22,7 @@ from catalign.data.shapes import (
 )
 from catalign.errors import ShapeReadError
 from catalign.geometry.io import MeshData
-from catalign.registration.verification import top_offset
+from catalign.registration.stages.surface_checks import top_offset
 
 
 def test_stable_fraction_is_deterministic_and_in_range():
@@ -118,8 +118,8 @@ def test_shared_chairs_load(shared_chairs: SharedChairs):
 
 def _backrest_heading_deg(points: np.ndarray) -> tuple[float, float]:
     """Where the top quarter of a chair (mostly its backrest) sits horizontally, relative to
-    the whole (:func:`~catalign.registration.verification.top_offset`): the heading in degrees
-    (0 = +Z, 90 = +X) and the offset's length."""
+    the whole (:func:`~catalign.registration.stages.surface_checks.top_offset`): the heading in
+    degrees (0 = +Z, 90 = +X) and the offset's length."""
     dx, _, dz = top_offset(points, np.array([0.0, 1.0, 0.0]))
     return float(np.degrees(np.arctan2(dx, dz))), float(np.hypot(dx, dz))
 

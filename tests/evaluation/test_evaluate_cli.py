@@ -14,8 +14,8 @@ from catalign.evaluation.report import COLUMNS
 from catalign.evaluation.runner import given_up
 from catalign.geometry.se3 import transform
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.confidence import SIGNALS, find_calibrator
 from catalign.registration.config import EngineConfig
+from catalign.registration.decision.confidence import SIGNALS, find_calibrator
 
 runner = CliRunner()
 # FPFH proposes no orientation and has no confidence: those columns are None.

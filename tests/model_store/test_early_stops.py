@@ -17,15 +17,16 @@ from catalign.data.views import camera_at, render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.features.orientation import OrientationProposer, Proposal
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
 from catalign.library.index import load
-from catalign.registration.base import RegistrationResult
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
-from catalign.registration.frame import query_frame
-from catalign.registration.gravity import leveller, yaw_of
-from catalign.registration.search import Request, Search
-from catalign.registration.verify import Scored
+from catalign.registration.prepare.frame import query_frame
+from catalign.registration.results import RegistrationResult
+from catalign.registration.stages.request import Request
+from catalign.registration.stages.search import Search
+from catalign.registration.stages.verify import Scored
 
 UP = np.array([0.0, 0.0, 1.0])
 # The chair of the default library seen (test_shipped_engine's views).
@@ -135,13 +136,13 @@ def registered(
     config = EngineConfig(**({"heading_mass": 0.95, stop.option: 0.5} | options))
     engine = Engine(extractor, library, config=config)
     searched: set[tuple[float, ...]] = set()
-    search = engine._search
+    search = engine.searcher.search
 
-    def recorded(query: Search, request: Request) -> list[Scored]:
+    def recorded(query: Search, request: Request) -> tuple[Search, list[Scored]]:
         searched.update(stop.searched(query))
         return search(query, request)
 
-    monkeypatch.setattr(engine, "_search", recorded)
+    monkeypatch.setattr(engine.searcher, "search", recorded)
     result = engine.register(points, up=UP if stop.with_up else None, seed=0)
     recovered = (
         result.model_id == procedural_shape(SEED).shape_id

@@ -20,7 +20,7 @@ from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
 from catalign.library.index import build, load
 from catalign.registration.engine import Engine
-from catalign.registration.orient import orient
+from catalign.registration.prepare.orient import orient
 
 OBSERVED = "8979c1aaa6675009bf80985a99195eb8"
 # The chair the view's remainder fitted exactly once the back was set aside as a floor.

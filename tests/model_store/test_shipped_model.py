@@ -8,8 +8,8 @@ import torch
 
 from catalign.data.shapes import SharedChairs, to_metric
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.features.weights import WEIGHTS_FILE, load_model, sha256_of
 from catalign.training.batches import pair_features
-from catalign.training.checkpoint import WEIGHTS_FILE, load_model, sha256_of
 from catalign.training.pairs import PairSampler
 from catalign.training.validation import inlier_ratio
 

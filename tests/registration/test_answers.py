@@ -3,17 +3,12 @@ models that share the canonical frame."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
-from catalign.geometry.se3 import make_pose, transform
-from catalign.library.entry import LibraryEntry
-from catalign.library.index import Library
-from catalign.registration.answers import best_other, distinct, promoted, same_answer
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.transfer import transferred
-from catalign.registration.verify import Scored
+from catalign.geometry.se3 import make_pose
+from catalign.registration.decision.answers import best_other, distinct, promoted, same_answer
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.verify import Scored
 
 
 def _yaw(degrees: float) -> np.ndarray:
@@ -61,24 +56,6 @@ def test_best_other_separates_other_headings_from_other_models() -> None:
     assert best_other(ranked, answer, same_model=True) == 0.6  # the 5-degree pose is the same
     assert best_other(ranked, answer, same_model=False) == 0.7
     assert best_other(ranked[:2], answer, same_model=True) == 0.0
-
-
-def test_a_carried_pose_puts_the_other_model_centre_where_the_source_centre_goes(
-    make_entry: Callable[..., LibraryEntry], make_library: Callable[..., Library]
-) -> None:
-    rng = np.random.default_rng(0)
-    small = rng.uniform([-0.2, 0.0, -0.2], [0.2, 0.8, 0.2], size=(300, 3))
-    large = rng.uniform([-0.1, 0.1, -0.3], [0.5, 1.0, 0.3], size=(300, 3))
-    library = make_library(make_entry("small", small), make_entry("large", large))
-    source = _scored("small", 40, 0.8, shift=1.5)
-    carried = transferred(library, [source], ["small", "large"], poses=1, models=5)
-    assert [h.model_id for h in carried] == ["large"]  # not back onto its own model
-    assert len(carried[0].matches) == 0
-    where_small = transform(library["small"].centre[None], source.hypothesis.transform)
-    where_large = transform(library["large"].centre[None], carried[0].transform)
-    np.testing.assert_allclose(where_large, where_small, atol=1e-9)
-    np.testing.assert_allclose(carried[0].transform[:3, :3], _yaw(40), atol=1e-12)
-    assert transferred(library, [source], ["small", "large"], poses=0, models=5) == []
 
 
 def test_a_clearly_more_confident_alternative_is_promoted() -> None:

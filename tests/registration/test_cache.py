@@ -7,10 +7,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from catalign.registration.cache import ModelCache
 from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.match import Matcher
-from catalign.registration.refine import Refiner
+from catalign.registration.stages.match import Matcher
+from catalign.registration.stages.model_cache import ModelCache
+from catalign.registration.stages.refine import Refiner
 
 
 def test_the_least_recently_used_model_is_dropped_first():

@@ -5,18 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.geometry.levelling import leveller
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.registration.category_fit import (
+from catalign.registration.stages.category_fit import (
     ROUGH_TILT_DEG,
     CategoryFitter,
     rough_up_estimate,
     supported,
 )
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.refine import Refiner
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.refine import Refiner
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 TURN = leveller(Z_UP)

@@ -15,8 +15,8 @@ from catalign.data.views import (
 )
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, transform
-from catalign.registration.cleanup import detached_mask, fit_floor, floor_mask
-from catalign.registration.orient import GUESSED_FLOOR_SPREAD
+from catalign.registration.prepare.cleanup import detached_mask, fit_floor, floor_mask
+from catalign.registration.prepare.orient import GUESSED_FLOOR_SPREAD
 
 UP = np.array([0.0, 0.0, 1.0])
 # One chair of each kind whose parts do not lie on the floor (a pedestal's base plate or sled

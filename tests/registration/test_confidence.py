@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from catalign.errors import ConfigError
-from catalign.registration.confidence import (
+from catalign.registration.decision.confidence import (
     MAX_MARGIN,
     SIGNALS,
     Calibrator,

@@ -10,9 +10,9 @@ import pytest
 from catalign.features.extractor import Described
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
-from catalign.registration.base import Orientation
-from catalign.registration.describe import describe, even_headings, rotations_of
-from catalign.registration.validation import CheckedCloud
+from catalign.registration.prepare.validation import CheckedCloud
+from catalign.registration.results import Orientation
+from catalign.registration.stages.describe import describe, even_headings, rotations_of
 
 
 class RecordingExtractor:

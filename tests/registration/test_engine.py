@@ -11,13 +11,13 @@ from catalign.data.shapes import procedural_shape
 from catalign.deadline import Deadline
 from catalign.errors import DeadlineExceededError, DegenerateInputError, InvalidInputError
 from catalign.features.extractor import FPFHExtractor
+from catalign.geometry.levelling import leveller
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
 from catalign.library.index import Library, build, load
-from catalign.registration.alignment import mutual_nearest
 from catalign.registration.config import EngineConfig
-from catalign.registration.describe import QueryView
 from catalign.registration.engine import STAGES, Engine
-from catalign.registration.gravity import leveller
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.nearest import mutual_nearest
 
 SEEDS = (2, 8, 11)
 # FPFH matches are mostly wrong: match more query key points and every model key point, and

@@ -10,15 +10,17 @@ import pytest
 from catalign.data.views import WORLD_UP, upright_rotation
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.registration.base import Orientation
-from catalign.registration.category_fit import CategoryFitter
-from catalign.registration.describe import QueryView
-from catalign.registration.finish import Finisher
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.refine import Refiner
-from catalign.registration.search import Search
-from catalign.registration.validation import CheckedCloud
-from catalign.registration.verify import Scored, Verifier
+from catalign.registration.decision.finish import Finisher
+from catalign.registration.decision.rules import Finished, Found, Refined
+from catalign.registration.prepare.validation import CheckedCloud
+from catalign.registration.results import Orientation
+from catalign.registration.stages.category_fit import CategoryFitter
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.refine import Refiner
+from catalign.registration.stages.request import RequestCache
+from catalign.registration.stages.search import Search
+from catalign.registration.stages.verify import Scored
 
 VOXEL = 0.03
 POSE = make_pose(upright_rotation(0.6), np.array([0.5, -0.3, 0.0]))
@@ -28,13 +30,9 @@ POSE = make_pose(upright_rotation(0.6), np.array([0.5, -0.3, 0.0]))
 def finisher(box_chair, make_entry, make_library) -> Finisher:
     library = make_library(make_entry("chair", box_chair.points))
     refiner = Refiner(library, distance=VOXEL, icp_iterations=30, icp_points=None)
-    verifier = Verifier(
-        library, distance=2 * VOXEL, coverage_points=1500, verify_top=32, cell=VOXEL / 2
-    )
     return Finisher(
         library,
         refiner,
-        verifier,
         CategoryFitter(library, refiner, extent_points=1500),
         icp_distance=VOXEL,
         exact_fitness=0.9,
@@ -45,13 +43,22 @@ def finisher(box_chair, make_entry, make_library) -> Finisher:
 def _search(finisher: Finisher, keypoints: np.ndarray) -> Search:
     view = QueryView(keypoints, np.zeros((len(keypoints), 4), dtype=np.float32))
     probes = np.arange(min(384, len(keypoints)))
-    search = Search(Orientation(WORLD_UP, True, (0.0,)), [view], probes, support_radius=2 * VOXEL)
-    search.checks = finisher.verifier.query_checks(keypoints, probes, search.turn)
-    return search
+    return Search(Orientation(WORLD_UP, True, (0.0,)), [view], probes, support_radius=2 * VOXEL)
 
 
 def _posed(search: Search, pose: np.ndarray, score: float) -> Scored:
     return Scored(Hypothesis("chair", pose, np.zeros((0, 2), np.int64), search.views[0]), score)
+
+
+def _refined(finisher: Finisher, search: Search, item: Scored) -> Refined:
+    """``item`` taken as refined already: its fit measured, its score's factors made up."""
+    fit = finisher.refiner.fit(item.hypothesis, search.keypoints)
+    return Refined(Found(search, item), item, (item.score, 1.0, 1.0), fit)
+
+
+def _finish(finisher: Finisher, search: Search, item: Scored, tried: list[Scored]) -> Finished:
+    refined = _refined(finisher, search, item)
+    return finisher.finish(refined, tried, True, estimate_scale=False, cache=RequestCache())
 
 
 def test_an_exact_fit_keeps_its_pose_and_gets_its_evidence(finisher, box_chair) -> None:
@@ -59,7 +66,7 @@ def test_an_exact_fit_keeps_its_pose_and_gets_its_evidence(finisher, box_chair) 
     search = _search(finisher, keypoints)
     item = _posed(search, POSE, 0.8)
     turned = _posed(search, POSE @ make_pose(axis_angle(np.array([0, 1.0, 0]), np.pi), 0), 0.4)
-    done = finisher.finish(search, item, [item, turned], False, refit=True)
+    done = _finish(finisher, search, item, [item, turned])
     np.testing.assert_allclose(done.item.hypothesis.transform, POSE)
     assert done.fit.fitness > 0.95 and done.confidence is None
     assert done.evidence.fitness == pytest.approx(done.fit.fitness)
@@ -78,6 +85,6 @@ def test_another_instance_is_stood_upright_by_the_category_fit(finisher, box_cha
     keypoints, _ = voxel_downsample(transform(points, POSE), VOXEL)
     search = _search(finisher, keypoints)
     tilted = POSE @ make_pose(axis_angle(np.array([1.0, 0, 0]), np.radians(4.0)), 0)
-    done = finisher.finish(search, _posed(search, tilted, 0.5), [], False, refit=True)
+    done = _finish(finisher, search, _posed(search, tilted, 0.5), [])
     pose = done.item.hypothesis.transform
     assert rotation_error_deg(pose[:3, :3], POSE[:3, :3]) < 1.0  # upright again

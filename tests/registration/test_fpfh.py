@@ -15,9 +15,9 @@ from catalign.geometry.se3 import (
     transform,
     translation_error,
 )
-from catalign.registration.alignment import mutual_nearest
-from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
 from catalign.registration.methods import METHODS, build_registrar
+from catalign.registration.results import LibraryShape, Registrar, RegistrationResult
+from catalign.registration.stages.nearest import mutual_nearest
 
 RRE_MAX_DEG = 5.0
 RTE_MAX_M = 0.03

@@ -9,10 +9,10 @@ import pytest
 from catalign.data.shapes import procedural_shape
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import make_pose, random_rotation, transform
-from catalign.registration.base import Alternative, Orientation, RegistrationResult
-from catalign.registration.describe import rotations_of
-from catalign.registration.frame import query_frame
-from catalign.registration.validation import DENSE_POINTS, validate_cloud
+from catalign.registration.prepare.frame import query_frame
+from catalign.registration.prepare.validation import DENSE_POINTS, validate_cloud
+from catalign.registration.results import Alternative, Orientation, RegistrationResult
+from catalign.registration.stages.describe import rotations_of
 
 UP = np.array([0.0, 0.0, 1.0])
 

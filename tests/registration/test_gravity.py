@@ -6,17 +6,15 @@ import numpy as np
 import pytest
 
 from catalign.errors import InvalidInputError
+from catalign.geometry.levelling import level_pose, leveller, yaw_rotations
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
-from catalign.registration.gravity import (
+from catalign.registration.stages.gravity import (
     distinct_poses,
-    level_pose,
-    leveller,
     plausible_pairs,
     two_point_poses,
     yaw_ransac,
-    yaw_rotations,
 )
-from catalign.registration.verification import LayoutCheck, top_offset
+from catalign.registration.stages.surface_checks import LayoutCheck, top_offset
 
 UP = np.array([0.0, 1.0, 0.0])
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.geometry.levelling import leveller
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller
-from catalign.registration.hypothesise import Hypothesiser
-from catalign.registration.match import Matches
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.hypothesise import Hypothesiser
+from catalign.registration.stages.match import Matches
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller
 from catalign.geometry.se3 import axis_angle
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller
-from catalign.registration.match import Matcher, model_subset, probe_rows, query_subset
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.match import Matcher, model_subset, probe_rows, query_subset
 
 
 def _unit(count: int, seed: int) -> np.ndarray:

@@ -9,10 +9,10 @@ from catalign.data.shapes import Shape
 from catalign.data.views import Floor, camera_at, render_view, upright_rotation
 from catalign.features.orientation import Proposal
 from catalign.geometry.se3 import axis_angle, make_pose
-from catalign.registration.base import Orientation
-from catalign.registration.cleanup import floor_mask
-from catalign.registration.describe import even_headings, rotations_of
-from catalign.registration.orient import Oriented, orient, snap_to_plane
+from catalign.registration.prepare.cleanup import floor_mask
+from catalign.registration.prepare.orient import Oriented, orient, snap_to_plane
+from catalign.registration.results import Orientation
+from catalign.registration.stages.describe import even_headings, rotations_of
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 VOXEL = 0.025
@@ -194,7 +194,7 @@ def test_without_up_a_further_up_is_searched_first_only_while_the_ones_before_ar
 @pytest.mark.parametrize("heading", [0.0, 1.2, -2.5])
 def test_rotations_level_the_up_and_turn_by_the_heading(heading: float) -> None:
     from catalign.frames import MODEL_UP
-    from catalign.registration.base import Orientation
+    from catalign.registration.results import Orientation
 
     up = np.array([0.2, -0.3, 0.9])
     [rotation] = rotations_of(Orientation(up, False, (heading,), headings_proposed=True))

@@ -14,9 +14,9 @@ from catalign.geometry.se3 import (
     transform,
     translation_error,
 )
-from catalign.registration import alignment
-from catalign.registration.alignment import point_cloud
-from catalign.registration.ransac import (
+from catalign.registration.baseline import open3d_recipe
+from catalign.registration.baseline.open3d_recipe import point_cloud
+from catalign.registration.stages.ransac import (
     SCALE_RANGE,
     count_inliers,
     kabsch,
@@ -259,7 +259,7 @@ def test_up_prior_filters_hypotheses(upright_and_tipped):
 def open3d_ransac(src: np.ndarray, dst: np.ndarray, distance: float, seed: int) -> np.ndarray:
     """What the FPFH baseline runs: source = model points, target = observed."""
     pairs = np.repeat(np.arange(len(src))[:, None], 2, axis=1)
-    return alignment.open3d_ransac(point_cloud(src), point_cloud(dst), pairs, distance, seed)
+    return open3d_recipe.open3d_ransac(point_cloud(src), point_cloud(dst), pairs, distance, seed)
 
 
 def test_agrees_with_open3d(rng):

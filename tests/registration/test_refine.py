@@ -9,10 +9,10 @@ import pytest
 
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, invert, make_pose, rotation_error_deg, transform
-from catalign.registration.alignment import point_cloud
-from catalign.registration.describe import QueryView
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.refine import ICP_SCHEDULE, Refiner, may_be_within
+from catalign.registration.baseline.open3d_recipe import point_cloud
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.refine import ICP_SCHEDULE, Refiner, may_be_within
 
 reg = o3d.pipelines.registration
 POSE = make_pose(axis_angle(np.array([0.1, 1.0, 0.2]), 0.9), np.array([0.3, -0.1, 1.1]))
@@ -125,18 +125,14 @@ def test_icp_against_a_scaled_surface_is_icp_against_the_scaled_points(
     assert np.linalg.norm(ours[:3, 3] - POSE[:3, 3]) < 0.005
 
 
-@pytest.mark.parametrize("coarse_points", [None, 40])
-def test_a_subset_of_the_query_refines_as_well(
-    library, box_chair, coarse_points: int | None
-) -> None:
-    """150 of the query's points, and (40) a coarse pass on every fourth of them."""
+def test_a_subset_of_the_query_refines_as_well(library, box_chair) -> None:
+    """150 of the query's points."""
     keypoints = _observe(box_chair.points, POSE)
     few = Refiner(
         library,
         distance=DISTANCE,
         icp_iterations=30,
         icp_points=150,
-        icp_coarse_points=coarse_points,
     )
     assert len(keypoints) > 300
     refined = few.refine(_hypothesis(NUDGE @ POSE, keypoints), keypoints)
@@ -202,7 +198,6 @@ def test_the_engines_icp_converges_from_10_degrees_and_5_cm_off(
         distance=0.025,
         icp_iterations=config.icp_iterations,
         icp_points=config.icp_points,
-        icp_coarse_points=config.icp_coarse_points,
     )
     rng = np.random.default_rng(seed)
     camera = camera_at(POSE[:3, 3], 1.8, 30.0, rng.uniform(0.0, 360.0))

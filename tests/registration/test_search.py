@@ -9,9 +9,9 @@ import pytest
 
 from catalign.deadline import Deadline
 from catalign.errors import DeadlineExceededError
-from catalign.registration.base import Orientation
-from catalign.registration.describe import QueryView
-from catalign.registration.search import StageClock, query_searches
+from catalign.registration.results import Orientation
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.search import StageClock, query_searches
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -35,7 +35,7 @@ def test_views_are_split_by_orientation_in_the_order_of_their_headings():
     for search in searches:
         assert search.keypoints is search.views[0].keypoints
         assert len(search.probes) == 16 and search.probes.max() < 40
-        assert search.candidates == [] and search.checks is None
+        assert search.candidates == () and search.checks is None
         assert search.turn is not None  # an up: the turn that stands the query upright
     # the probe rows depend on the seed alone (and the key point count)
     again = query_searches(orientations, views, probe_points=16, seed=3, support_radius=0.5)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller
-from catalign.registration.shortlist import shortlist
+from catalign.geometry.levelling import leveller
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.shortlist import shortlist
 
 
 def _box(size: tuple[float, float, float], seed: int, count: int = 400) -> np.ndarray:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.geometry.levelling import leveller, yaw_rotations
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
 from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller, yaw_rotations
-from catalign.registration.sweep import Sweeper, closeness_table, sweep_model, sweep_yaws
-from catalign.registration.verification import SurfaceCheck
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.surface_checks import SurfaceCheck
+from catalign.registration.stages.sweep import Sweeper, closeness_table, sweep_model, sweep_yaws
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 DISTANCE = 0.06  # the verification distance of a 3 cm library: two voxels

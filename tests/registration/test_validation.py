@@ -8,7 +8,7 @@ from catalign.data.views import random_camera, random_object_pose, render_view
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation
-from catalign.registration.validation import (
+from catalign.registration.prepare.validation import (
     DENSE_POINTS,
     FAR_RADIUS_M,
     FINE_CELLS,

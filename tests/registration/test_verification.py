@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from catalign.geometry.distance_grid import DistanceGrid
 from catalign.geometry.se3 import axis_angle
-from catalign.registration.verification import CoverageCheck, SurfaceCheck
+from catalign.registration.stages.surface_checks import CoverageCheck, SurfaceCheck
 
 UP = np.array([0.0, 1.0, 0.0])
 CELL = 0.0125

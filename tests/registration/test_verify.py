@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.geometry.levelling import leveller
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, make_pose, transform
-from catalign.registration.base import Candidate
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import leveller
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.verify import Scored, Verifier, best_per_model, surface_sample
+from catalign.registration.results import Candidate
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.verify import Scored, Verifier, best_per_model, surface_sample
 
 Z_UP = np.array([0.0, 0.0, 1.0])
 POSE = make_pose(axis_angle(Z_UP, 0.8) @ leveller(Z_UP).T, np.array([0.4, 0.1, 0.0]))

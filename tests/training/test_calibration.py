@@ -14,9 +14,9 @@ from catalign.data.shapes import SharedChairs, split_of, to_metric
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
-from catalign.registration.base import LibraryShape
-from catalign.registration.confidence import SIGNALS, Calibrator, find_calibrator
+from catalign.registration.decision.confidence import SIGNALS, Calibrator, find_calibrator
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape
 from catalign.training.calibration import BOOSTING, Samples, fit, plans
 
 runner = CliRunner()

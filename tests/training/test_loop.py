@@ -13,8 +13,8 @@ import torch
 from catalign.data.shapes import procedural_shape
 from catalign.errors import ConfigError
 from catalign.features.resunet import build_model
+from catalign.features.weights import CARD_FILE, WEIGHTS_FILE, load_model
 from catalign.training.batches import pair_features
-from catalign.training.checkpoint import CARD_FILE, WEIGHTS_FILE, load_model
 from catalign.training.config import TrainConfig
 from catalign.training.loop import train
 from catalign.training.loss import hardest_contrastive_loss

@@ -45,8 +45,8 @@ if TYPE_CHECKING:
     from catalign.api.settings import ServiceSettings
     from catalign.features.extractor import FeatureExtractor
     from catalign.library.index import Library
-    from catalign.registration.base import RegistrationResult
     from catalign.registration.engine import Engine
+    from catalign.registration.results import RegistrationResult
 
 logger = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from catalign.registration.config import EngineConfig
 
 if TYPE_CHECKING:
     from catalign.library.entry import LibraryEntry
-    from catalign.registration.base import Alternative, RegistrationResult
+    from catalign.registration.results import Alternative, RegistrationResult
 
 MAX_SEED = 2**31 - 1
 MAX_TOP_K = 10_000

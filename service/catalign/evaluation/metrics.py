@@ -14,10 +14,10 @@ import numpy as np
 from scipy.stats import mannwhitneyu
 
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.se3 import rotation_error_deg, transform, translation_error
-from catalign.registration.base import Orientation
-from catalign.registration.gravity import leveller, yaw_of
+from catalign.registration.results import Orientation
 
 RRE_THRESHOLDS_DEG = (10.0, 20.0, 30.0)
 RTE_THRESHOLDS_M = (0.05, 0.10)

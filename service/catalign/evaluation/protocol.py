@@ -47,7 +47,7 @@ from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.geometry.se3 import make_pose, random_rotation, transform
-from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
+from catalign.registration.results import LibraryShape, Registrar, RegistrationResult
 
 Setting = Literal["same", "cross"]
 SETTINGS: tuple[Setting, ...] = ("same", "cross")

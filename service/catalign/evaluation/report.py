@@ -23,7 +23,7 @@ from catalign.evaluation.metrics import (
 )
 from catalign.evaluation.protocol import CaseOutcome
 from catalign.geometry.ncc import NCCFrame
-from catalign.registration.confidence import Evidence
+from catalign.registration.decision.confidence import Evidence
 
 # A refused view (too little of the chair in sight) fails every threshold.
 REFUSED = PoseError(rre_deg=180.0, rte_m=float("inf"))

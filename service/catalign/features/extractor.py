@@ -18,7 +18,7 @@ import torch
 
 from catalign.features.orientation import OrientationProposer, find_orientation
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.confidence import Calibrator, find_calibrator
+from catalign.registration.decision.confidence import Calibrator, find_calibrator
 
 
 @dataclass(frozen=True)
@@ -56,8 +56,7 @@ class LearnedExtractor:
     """
 
     def __init__(self, model_dir: Path | None = None, threads: int | None = None) -> None:
-        from catalign.training.checkpoint import load_model
-        from catalign.training.pairs import YAW_BINS
+        from catalign.features.weights import YAW_BINS, load_model
 
         self.model, self.card = load_model(model_dir or DEFAULT_MODEL_DIR)
         self.voxel_size = float(self.card["voxel_size"])

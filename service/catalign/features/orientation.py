@@ -33,7 +33,7 @@ import torch
 from safetensors.torch import load_file
 from torch import Tensor, nn
 
-from catalign.training.checkpoint import verified_card
+from catalign.features.weights import verified_card
 
 GRID = 32
 UP_BINS = 256

@@ -1,7 +1,7 @@
 """Rigid transforms as 4x4 homogeneous matrices, and the pose errors the paper reports.
 
-Convention (ARCHITECTURE.md): a pose ``T`` maps model coordinates to observation coordinates,
-``x_obs = R @ x_model + t``; matrices are row-major numpy float64 arrays.
+Convention (the service's, docs/architecture.md): a pose ``T`` maps model coordinates to
+observation coordinates, ``x_obs = R @ x_model + t``; matrices are row-major numpy float64 arrays.
 """
 
 from __future__ import annotations

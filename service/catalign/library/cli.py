@@ -7,7 +7,7 @@ where features are computed; an error the library detects prints one sentence, e
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -107,11 +107,14 @@ def configure(
     """Set the engine options a server runs this library with (CATALIGN_ENGINE__* variables
     and `catalign serve --engine` still override them)."""
     from catalign.library.index import configure as configure_library
-    from catalign.registration.config import parse_options
+    from catalign.registration.config import EngineConfig, parse_options, served_config
+
+    def check(options: dict[str, Any]) -> None:
+        served_config(EngineConfig(), options)
 
     with exit_on_error():
         options = parse_options(engine or ()).model_dump(exclude_unset=True)
-        manifest = configure_library(library, options, clear=clear)
+        manifest = configure_library(library, options, clear=clear, check=check)
     typer.echo(f"{library}: engine options {_options(manifest.engine)}")
 
 

@@ -26,7 +26,7 @@ from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.library.retrieval import global_descriptor
 from catalign.library.sources import SourceFile, unit_factor
-from catalign.registration.validation import MIN_VOXELS
+from catalign.limits import MIN_VOXELS
 
 if TYPE_CHECKING:  # the extractor module imports torch; entries only need its interface
     from catalign.features.extractor import FeatureExtractor

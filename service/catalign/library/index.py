@@ -54,7 +54,6 @@ from catalign.library.store import (
     write_entry,
     writer_lock,
 )
-from catalign.registration.config import EngineConfig, served_config
 
 if TYPE_CHECKING:  # the extractor module imports torch; the index only needs its interface
     from catalign.features.extractor import FeatureExtractor
@@ -258,16 +257,22 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
 
 
 def configure(
-    library_dir: str | Path, options: Mapping[str, Any], *, clear: bool = False
+    library_dir: str | Path,
+    options: Mapping[str, Any],
+    *,
+    clear: bool = False,
+    check: Callable[[dict[str, Any]], object] | None = None,
 ) -> Manifest:
     """Set engine options the library is served with (``clear``: drop the ones it had first);
-    the entries are untouched. ``options`` are checked as
-    :class:`~catalign.registration.config.EngineConfig` fields (ConfigError saying which)."""
+    the entries are untouched. The library stores the options as plain data; ``check``, given
+    the options it would store, refuses bad ones before anything is written (the command line
+    checks them as the engine's configuration, which this layer does not import)."""
     library_dir = Path(library_dir)
     with writer_lock(library_dir):
         current = read_manifest(library_dir)
         engine = ({} if clear else current.engine) | dict(options)
-        served_config(EngineConfig(), engine)  # refuse a bad option now, not at serve time
+        if check is not None:
+            check(engine)  # refuse a bad option now, not at serve time
         manifest = dataclasses.replace(current, updated=utc_now(), engine=engine)
         commit(library_dir, manifest)
     logger.info("library %s served with engine options %s", library_dir, engine or "(defaults)")

@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from catalign.errors import ConfigError
-from catalign.registration.validation import FINE_CELLS, MIN_VOXELS
+from catalign.registration.prepare.validation import FINE_CELLS, MIN_VOXELS
 
 Stage = TypeVar("Stage")
 
@@ -58,10 +58,6 @@ class EngineConfig(BaseModel):
     icp_points: int | None = Field(default=600, ge=3)
     """Query key points ICP aligns, a fixed subset (None: all); 600 measured as accurate as all
     of them and a quarter faster (``bench/results/tradeoff-icp.md``)."""
-    icp_coarse_points: int | None = Field(default=None, ge=3)
-    """Of those, about how many the coarse ICP pass aligns (every n-th; None: all of them).
-    300 saves about 8 ms a query at the same accuracy on the evaluation's views, but a sparse
-    real scan's pose moved more with the sensor: off by default."""
     up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
     """How far the chair's up may tilt from the given ``up`` in the three-point search."""
     up_snap_deg: float | None = Field(default=None, gt=0, le=30)
@@ -133,33 +129,9 @@ class EngineConfig(BaseModel):
     a case at a few thresholds of the evaluation's three seeds."""
     verify_top: int = Field(default=32, ge=1)
     """Poses, best by the surface check, that get the coverage check."""
-    transfer_poses: int = Field(default=0, ge=0)
-    """Best verified poses carried over to other shortlisted models (every model shares the
-    canonical frame; the observed chair's own CAD may match too poorly to be posed itself).
-    4 picks the observed chair's own CAD 3 more times in 108 but loses 2 poses within 5 cm
-    (``bench/results/tradeoff-transfer.md``): off by default."""
-    transfer_models: int = Field(default=5, ge=0)
-    """Shortlisted models, best first, the poses are carried over to."""
-    rival_models: int = Field(default=0, ge=0)
-    """Leading models other than the winner that its refined pose is tried on: one that fits
-    the query better by ``rival_margin`` after ICP, at nearly the winner's pose, replaces it
-    (the observed chair's own CAD beaten by a near-twin; 0: none). On 244 views of the
-    training chairs 5 picks the own CAD 4 more times and poses as many right; on the
-    validation views (seeds 0 to 2) 1 more time in 162, with 1 *cross* view fewer within
-    5 cm (``docs/evaluation.md``), for an ICP per query: off by default."""
-    rival_icp: int = Field(default=1, ge=1)
-    """Of those, the ones that fit best at the winner's pose that get ICP."""
-    rival_margin: float = Field(default=0.1, ge=0, le=1)
-    """Fitness by which a rival must beat the winner."""
-    rival_turn_deg: float = Field(default=5.0, ge=0, le=180)
-    """A rival whose refined pose is turned further than this from the winner's is not taken:
-    a rival changes the model, not the pose (without this check, and ``rival_shift_m``, 5
-    rivals lost 5 right *same* poses and 10 *cross* ones of 244)."""
-    rival_shift_m: float = Field(default=0.05, gt=0)
-    """Nor one that moves its category-level origin further than this (metres)."""
     sweep_models: int = Field(default=10, ge=0)
     """With an up: the best shortlisted models whose poses are also searched from their
-    surfaces alone, every yaw and shift on a grid (:mod:`~catalign.registration.sweep`; 0:
+    surfaces alone, every yaw and shift on a grid (:mod:`~catalign.registration.stages.sweep`; 0:
     none): the observed chair's own CAD may match too poorly to be posed by its matches."""
     sweep_yaw_deg: float = Field(default=5.0, gt=0, le=90)
     """Step of the sweep's yaws (degrees)."""

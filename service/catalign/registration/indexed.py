@@ -17,9 +17,9 @@ import trimesh
 
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import build, load
-from catalign.registration.base import LibraryShape, Registrar, RegistrationResult
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
+from catalign.registration.results import LibraryShape, Registrar, RegistrationResult
 
 
 class IndexedRegistrar(Registrar):

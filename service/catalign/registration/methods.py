@@ -24,13 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from catalign.errors import ConfigError
-from catalign.registration.base import Registrar
 from catalign.registration.config import EngineConfig
+from catalign.registration.results import Registrar
 
 
 def _fpfh(model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | None) -> Registrar:
     from catalign.features.extractor import FPFHExtractor
-    from catalign.registration.pipeline import FeatureRegistrar
+    from catalign.registration.baseline.fpfh import FeatureRegistrar
 
     voxel = 0.025
     extractor = FPFHExtractor(voxel)

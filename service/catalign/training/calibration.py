@@ -7,11 +7,11 @@ sorted id, each fold's views registered against a library of the other folds: 46
 training chairs, near the 61 the evaluation's *cross* library holds). Views come upright with ``up``
 given and in any rotation without it, so the calibrator learns what an estimated up costs.
 Every answer, the winner and its alternatives, is one sample: its
-:class:`~catalign.registration.confidence.Evidence` and whether it is right (within 10 degrees
-and 5 cm in the evaluation's category-level metric). Gradient-boosted trees (scikit-learn's
+:class:`~catalign.registration.decision.confidence.Evidence` and whether it is right (within 10
+degrees and 5 cm in the evaluation's category-level metric). Gradient-boosted trees (scikit-learn's
 ``GradientBoostingClassifier``, :data:`BOOSTING`) on the signals are the calibrator, exported as
-plain arrays (:class:`~catalign.registration.confidence.Tree`); its card records the command,
-the data, the signals' importances and its in-sample quality.
+plain arrays (:class:`~catalign.registration.decision.confidence.Tree`); its card records the
+command, the data, the signals' importances and its in-sample quality.
 """
 
 from __future__ import annotations
@@ -40,8 +40,7 @@ from catalign.evaluation.protocol import TestCase, build_cases, frames_of, metri
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.ncc import NCCFrame
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.base import LibraryShape, RegistrationResult
-from catalign.registration.confidence import (
+from catalign.registration.decision.confidence import (
     CALIBRATOR_FILE,
     SIGNALS,
     Calibrator,
@@ -49,6 +48,7 @@ from catalign.registration.confidence import (
     Tree,
 )
 from catalign.registration.indexed import IndexedRegistrar
+from catalign.registration.results import LibraryShape, RegistrationResult
 
 # The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
 CALIBRATION_SEED = 2_000
@@ -198,7 +198,7 @@ def collect(
 def fit(samples: Samples, **changes: Any) -> Calibrator:
     """Boosted trees on the signals (:data:`BOOSTING`, with ``changes`` to its settings: the
     other shapes ``bench/calibrators.py`` compares), exported to a
-    :class:`~catalign.registration.confidence.Calibrator` whose card names the settings and
+    :class:`~catalign.registration.decision.confidence.Calibrator` whose card names the settings and
     each signal's importance."""
     from sklearn.ensemble import GradientBoostingClassifier
 

@@ -8,20 +8,17 @@ data, metrics, and the sha256 of the weights file, which the library index recor
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
 from catalign.atomic import atomic_write_bytes
-from catalign.errors import ConfigError
-from catalign.features.resunet import ResUNet2, build_model
+from catalign.features.resunet import ResUNet2
+from catalign.features.weights import CARD_FILE, WEIGHTS_FILE, sha256_of
 
-WEIGHTS_FILE = "model.safetensors"
-CARD_FILE = "model_card.json"
 STATE_FILE = "state.pt"
 
 
@@ -54,14 +51,6 @@ def load_state(directory: Path) -> dict[str, Any] | None:
     return torch.load(path, weights_only=True)
 
 
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def export_model(directory: Path, model: ResUNet2, card: dict[str, Any]) -> dict[str, Any]:
     """Write ``model.safetensors`` and ``model_card.json``; return the card with its sha256."""
     metadata = {"model_config": json.dumps(model.config)}
@@ -91,28 +80,3 @@ def export_weights(
     }
     atomic_write_bytes(directory / card_file, json.dumps(card, indent=2).encode())
     return card
-
-
-def verified_card(directory: Path, weights_file: str, card_file: str) -> dict[str, Any]:
-    """The card of the weights in ``directory``, after checking that the weights' sha256 is
-    the one it records (a corrupt or replaced file is refused)."""
-    card_path, weights = directory / card_file, directory / weights_file
-    if not card_path.is_file() or not weights.is_file():
-        raise ConfigError(f"no model in {directory}: expected {card_file} and {weights_file}")
-    card = json.loads(card_path.read_text())
-    actual = sha256_of(weights)
-    if card.get("sha256") != actual:
-        raise ConfigError(
-            f"{weights} does not match its card (sha256 {actual[:12]}..., card says "
-            f"{str(card.get('sha256'))[:12]}...): the weights file is corrupt or was replaced"
-        )
-    return card
-
-
-def load_model(directory: Path) -> tuple[ResUNet2, dict[str, Any]]:
-    """The shipped model in eval mode and its card; the weights' sha256 must match the card."""
-    card = verified_card(directory, WEIGHTS_FILE, CARD_FILE)
-    model = build_model(**card["architecture"])
-    model.load_state_dict(load_file(str(directory / WEIGHTS_FILE)))
-    model.eval()
-    return model, card

@@ -49,8 +49,8 @@ from catalign.features.orientation import (
     principal_frames,
 )
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller, yaw_of, yaw_rotations
 from catalign.geometry.se3 import axis_angle, random_rotation
-from catalign.registration.gravity import leveller, yaw_of, yaw_rotations
 from catalign.training.checkpoint import export_weights
 
 # Held-out views are rendered at their own seed, never one the evaluation uses (0, 1).

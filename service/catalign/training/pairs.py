@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from catalign.data.shapes import Shape
 from catalign.data.views import random_camera, random_object_pose, render_view
+from catalign.features.weights import YAW_BINS
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample, voxel_grid
@@ -33,8 +34,6 @@ from catalign.geometry.se3 import axis_angle, invert, random_rotation, transform
 
 PairKind = Literal["same", "cross"]
 RotationMode = Literal["upright", "yaw-bin", "yaw-quarter", "so3"]
-# Headings a query is tried at for each binned mode; training yaws span one bin, +-180/n degrees.
-YAW_BINS = {"yaw-bin": 8, "yaw-quarter": 4}
 
 
 def augmentation_rotation(

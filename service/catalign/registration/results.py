@@ -1,7 +1,8 @@
 """The registration interface every method implements (classic baseline and learned engine).
 
 A :class:`Registrar` is prepared once with library shapes and then answers queries. Poses follow
-ARCHITECTURE.md: ``x_observation = R @ x_model + t``, model coordinates as the library gave them.
+the service's convention: ``x_observation = R @ x_model + t``, model coordinates as the library
+gave them.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from catalign.geometry.io import MeshData
-from catalign.registration.confidence import Evidence
+from catalign.registration.decision.confidence import Evidence
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,7 @@ class Orientation:
     of a floor found under the cloud: its height along ``up`` (None without one), every
     proposed heading with its probability mass, described or not (empty when none was), and
     whether the up is rough: a proposed up no plane confirmed, good to about ten degrees
-    (:class:`~catalign.registration.orient.SearchedUp`)."""
+    (:class:`~catalign.registration.prepare.orient.SearchedUp`)."""
 
     up: np.ndarray | None
     given: bool

@@ -14,8 +14,8 @@ moves every query into a frame fixed by the cloud itself, and the answer back:
 each axis pointing to the side with the longer tail, but for the least skewed one, which
 makes the frame right-handed.
 
-:func:`~catalign.registration.validation.validate_cloud` moves the points there before it lays
-any grid on them, so the answer is equivariant to rigid motions of the query, up to rounding.
+:func:`~catalign.registration.prepare.validation.validate_cloud` moves the points there before it
+lays any grid on them, so the answer is equivariant to rigid motions of the query, up to rounding.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.se3 import axis_angle, make_pose
-from catalign.registration.base import Orientation, RegistrationResult
-from catalign.registration.gravity import leveller, yaw_of
+from catalign.registration.results import Orientation, RegistrationResult
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class QueryFrame:
 
     def _orientation(self, orientation: Orientation | None) -> Orientation | None:
         """An orientation searched in the query frame, in the observation's: its up turned
-        back, its headings (yaws about up after :func:`~catalign.registration.gravity.leveller`)
+        back, its headings (yaws about up after :func:`~catalign.geometry.levelling.leveller`)
         shifted by the yaw between the two frames' levellings, its floor's height measured
         from the observation's origin."""
         if orientation is None or orientation.up is None:

@@ -1,7 +1,6 @@
 """The query as the engine searches it: one :class:`Search` per orientation (its views at each
 heading, the key points and probe rows verification uses, its shortlist and checks once
-searched), the :class:`Request` that holds one call's options and what its search rounds
-share, and the :class:`StageClock` that times the engine's steps and checks its deadline.
+searched), and the :class:`StageClock` that times the engine's steps and checks its deadline.
 """
 
 from __future__ import annotations
@@ -9,34 +8,38 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import TypeVar
 
 import numpy as np
 
 from catalign.deadline import Deadline
-from catalign.registration.base import Orientation
-from catalign.registration.category_fit import supported
-from catalign.registration.describe import QueryView, turn_of
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.match import probe_rows
-from catalign.registration.verify import QueryChecks, Scored
+from catalign.features.orientation import HEADING_DISTINCT_DEG
+from catalign.geometry.levelling import yaw_of
+from catalign.registration.results import Orientation
+from catalign.registration.stages.category_fit import supported
+from catalign.registration.stages.describe import QueryView, turn_of
+from catalign.registration.stages.match import probe_rows
+from catalign.registration.stages.verify import QueryChecks, Scored
 
 T = TypeVar("T")
+# A pose at a heading the heading network all but rules out keeps this much belief.
+HEADING_BELIEF_FLOOR = 0.01
 
 
-@dataclass(eq=False)
+@dataclass(frozen=True, eq=False)
 class Search:
     """The query under one orientation: its views (one per heading), the key points and probe
-    rows that verification uses, and, once searched, its shortlist and checks. Its ``solid``
-    key points are those with two neighbours within ``support_radius`` (metres)."""
+    rows that verification uses, and, once searched (a new :class:`Search`, from
+    :meth:`searched`), its shortlist and the query's side of verification. Its ``solid`` key
+    points are those with two neighbours within ``support_radius`` (metres)."""
 
     orientation: Orientation
     views: list[QueryView]
     probes: np.ndarray
     support_radius: float
-    candidates: list[str] = field(default_factory=list)
+    candidates: tuple[str, ...] = ()
     checks: QueryChecks | None = None
 
     @property
@@ -51,6 +54,29 @@ class Search:
     @cached_property
     def turn(self) -> np.ndarray | None:
         return turn_of(self.orientation)
+
+    def searched(self, candidates: list[str], checks: QueryChecks) -> Search:
+        """This search with its shortlist and checks."""
+        return replace(self, candidates=tuple(candidates), checks=checks)
+
+    def widened(self, orientation: Orientation, views: list[QueryView]) -> Search:
+        """This search at more headings of its up (``orientation``), ``views`` added after
+        its own: its probes and checks are kept, its shortlist is made again."""
+        return replace(self, orientation=orientation, views=self.views + views, candidates=())
+
+    def weighed(self, item: Scored, up_power: float, heading_power: float) -> Scored:
+        """A verified pose found under this search's orientation, its score weighed by the
+        belief in that orientation's up to ``up_power`` (verification alone prefers an
+        upside-down chair too often) and by the heading network's belief in its heading to
+        ``heading_power`` (verification alone turns another instance a quarter or half turn
+        too often)."""
+        orientation, turn = self.orientation, self.turn
+        weight = orientation.belief**up_power
+        if heading_power and turn is not None:
+            yaw = yaw_of(turn @ item.hypothesis.transform[:3, :3])
+            heading = orientation.heading_belief(yaw, HEADING_DISTINCT_DEG / 2)
+            weight *= max(heading, HEADING_BELIEF_FLOOR) ** heading_power
+        return Scored(item.hypothesis, item.score * weight)
 
 
 def query_searches(
@@ -69,24 +95,6 @@ def query_searches(
         probes = probe_rows(len(mine[0].keypoints), probe_points, seed)
         searches.append(Search(orientation, mine, probes, support_radius))
     return searches
-
-
-@dataclass(eq=False)
-class Request:
-    """One call of the engine: its shortlist size ``k`` (None: every model), whether it
-    estimates scale, its seed and clock, and what a second search round (more headings of the
-    same orientations) takes over from the first: each model's poses at each view (by the
-    view's id: the searches hold their views for the whole call), each pose's refinement (by
-    the pose's id; the entry keeps the pose alive) and the share of the query it fits, all
-    deterministic."""
-
-    k: int | None
-    estimate_scale: bool
-    seed: int
-    clock: StageClock
-    poses: dict[tuple[str, int], list[Hypothesis]] = field(default_factory=dict)
-    refined: dict[int, tuple[Hypothesis, Scored]] = field(default_factory=dict)
-    fitness: dict[int, float] = field(default_factory=dict)
 
 
 class StageClock:

@@ -20,7 +20,7 @@ The checks also bound the work any later stage can be asked to do, whatever the 
   clusters are set aside (:meth:`CheckedCloud.without`) is refused before the features are
   computed on it;
 * **the query's own frame comes first**: the points kept are moved into the frame of
-  :mod:`~catalign.registration.frame` before any grid is laid on them, so neither the
+  :mod:`~catalign.registration.prepare.frame` before any grid is laid on them, so neither the
   down-sampling below nor the voxel counts the checks judge depend on where the sensor stood;
 * **dense clouds are down-sampled**: a cloud of more than :data:`DENSE_POINTS` points reaches
   the engine as one point per cell of a quarter voxel (the centroid of its points; a depth
@@ -44,7 +44,8 @@ import numpy as np
 
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.sampling import occupied_voxels, voxel_downsample
-from catalign.registration.frame import IDENTITY, QueryFrame, query_frame
+from catalign.limits import MIN_VOXELS
+from catalign.registration.prepare.frame import IDENTITY, QueryFrame, query_frame
 
 # A principal spread below this share of the largest one is flat relative to the cloud's size.
 # Ray-cast views of procedural chairs (seat, back and legs) have ratios of 0.34 (second axis)
@@ -56,8 +57,6 @@ PLANE_RATIO = 0.03
 # voxels (a wall with a chair in front of it) is not a plane, even if the relief is thin
 # relative to its extent.
 SLAB_WIDTH_PER_SIGMA = math.sqrt(12.0)
-# Occupied voxels a query needs (and a library model has): see validate_cloud.
-MIN_VOXELS = 50
 # Points farther than this from the cloud's median are set aside (views of chairs: 1.3 m at
 # most; real scans: 0.7 m; room for floor or a neighbour's part around the chair).
 FAR_RADIUS_M = 3.0

@@ -19,13 +19,9 @@ import open3d as o3d
 
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.se3 import invert
-from catalign.registration.alignment import (
-    alignment_score,
-    mutual_nearest,
-    point_cloud,
-    ransac_icp,
-)
-from catalign.registration.base import Candidate, LibraryShape, Registrar, RegistrationResult
+from catalign.registration.baseline.open3d_recipe import alignment_score, point_cloud, ransac_icp
+from catalign.registration.results import Candidate, LibraryShape, Registrar, RegistrationResult
+from catalign.registration.stages.nearest import mutual_nearest
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ plane is a floor only if all of these hold:
 Under an up that was guessed, not given, a chair's backrest or side can pass all three, so
 :func:`floor_mask` takes ``min_spread``: the floor must also reach past the chair
 (:func:`spread`; the orient stage's thresholds and their measurements are in
-:mod:`~catalign.registration.orient`). And a floor has an object standing on it: with
+:mod:`~catalign.registration.prepare.orient`). And a floor has an object standing on it: with
 ``min_standing``, the points above it must occupy that many voxels (a flat backrest seen face
 on, with a few points beyond it, is all plane and passes every other rule).
 
@@ -75,7 +75,7 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from catalign.errors import InvalidInputError
 from catalign.geometry.sampling import occupied_voxels
-from catalign.registration.validation import MAX_RANGE_M
+from catalign.registration.prepare.validation import MAX_RANGE_M
 
 # Fewer points than this: nothing to clean, both masks are all False.
 MIN_POINTS = 10

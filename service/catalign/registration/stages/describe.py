@@ -3,7 +3,7 @@
 Library models share the category's canonical frame (+Y up, :data:`~catalign.frames.MODEL_UP`),
 and features trained on ``yaw-bin`` rotations only know headings within half a bin of it. So
 the query is described after rotations that level it (its up onto +Y) and turn it about +Y:
-the proposed headings of :mod:`~catalign.registration.orient`, or, without proposals,
+the proposed headings of :mod:`~catalign.registration.prepare.orient`, or, without proposals,
 :func:`even_headings` (8, 45 degrees apart, for the shipped model; 1 for
 rotation-invariant features). The rotations share forward passes, as many per pass as
 ``pass_voxels`` allows: one pass for a typical view, several for the largest queries, whose
@@ -19,9 +19,9 @@ import numpy as np
 
 from catalign.features.extractor import FeatureExtractor
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import leveller
 from catalign.geometry.se3 import axis_angle
-from catalign.registration.base import Orientation
-from catalign.registration.gravity import leveller
+from catalign.registration.results import Orientation
 
 
 def turn_of(orientation: Orientation) -> np.ndarray | None:
@@ -43,7 +43,7 @@ def even_headings(count: int) -> tuple[float, ...]:
     return tuple(2 * np.pi * k / count for k in range(count))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class QueryView:
     """The query described at one heading; key points are in the observation frame."""
 

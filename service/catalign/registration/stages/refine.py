@@ -3,8 +3,8 @@
 A hypothesis from two or three matches can be a few degrees off, which moves a chair's far side
 further than one ICP distance; so ICP runs twice, within 3 and then 1 times ``distance``
 (:data:`ICP_SCHEDULE`), from the hypothesis. The query is aligned *onto* the model (query ->
-model, as in :mod:`~catalign.registration.alignment`) so that the fitness is the share of the
-query the posed model explains; poses are reported model -> observation.
+model, as in :mod:`~catalign.registration.baseline.open3d_recipe`) so that the fitness is the share
+of the query the posed model explains; poses are reported model -> observation.
 
 ICP is small_gicp's point-to-plane ICP: each model's surface, its normals and its KD-tree are
 built once and cached, where Open3D's ICP builds the target's KD-tree on every call
@@ -30,8 +30,8 @@ import small_gicp
 from catalign.geometry.distance_grid import DistanceGrid
 from catalign.geometry.se3 import invert, split_scale, transform
 from catalign.library.index import Library
-from catalign.registration.cache import ModelCache
-from catalign.registration.hypothesise import Hypothesis
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.model_cache import ModelCache
 
 # ICP distances, in multiples of the ICP distance: coarse first, then fine.
 ICP_SCHEDULE = (3.0, 1.0)
@@ -66,7 +66,7 @@ class Refiner:
 
     ``distance`` is the ICP inlier distance (metres, the fine one); ``icp_iterations`` the
     most Gauss-Newton steps of each pass; ``icp_points`` the query points ICP aligns (a
-    fixed subset; None: all), of which the coarse pass takes about ``icp_coarse_points``.
+    fixed subset; None: all).
     """
 
     library: Library
@@ -74,7 +74,6 @@ class Refiner:
     distance: float
     icp_iterations: int
     icp_points: int | None
-    icp_coarse_points: int | None = None
     model_cache: int | None = None
     _surfaces: ModelCache[_Surface] = field(init=False, repr=False)
 
@@ -101,7 +100,7 @@ class Refiner:
         current = invert(_translation_scaled(start, 1.0 / scale))
         for factor in ICP_SCHEDULE:
             reach = factor * self.distance / scale
-            near = _in_reach(grid, self._pass_points(shrunk, factor), current, reach)
+            near = _in_reach(grid, shrunk, current, reach)
             if len(near) < 3:  # nothing to align: the pose is kept
                 break
             current = small_gicp.align(
@@ -115,13 +114,6 @@ class Refiner:
                 max_iterations=self.icp_iterations,
             ).T_target_source
         return _translation_scaled(invert(np.asarray(current)), scale)
-
-    def _pass_points(self, points: np.ndarray, factor: float) -> np.ndarray:
-        """The ICP's points that the pass at ``factor`` aligns: every n-th, about
-        ``icp_coarse_points``, for the coarse passes; all of them for the fine one."""
-        if factor <= ICP_SCHEDULE[-1] or self.icp_coarse_points is None:
-            return points
-        return points[:: int(np.ceil(len(points) / self.icp_coarse_points))]
 
     def _subset(self, query: np.ndarray) -> np.ndarray:
         """At most ``icp_points`` of the query points, the same for every call."""

@@ -16,7 +16,7 @@ from typing import TypeVar
 import numpy as np
 
 from catalign.geometry.se3 import rotation_error_deg, split_scale
-from catalign.registration.verify import Scored
+from catalign.registration.stages.verify import Scored
 
 # Two poses of one model turned further apart than this are different answers.
 DISTINCT_TURN_DEG = 30.0

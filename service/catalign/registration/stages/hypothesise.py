@@ -3,10 +3,10 @@
 Cross-instance feature matches are mostly wrong (a few percent are right), and inlier counts
 confuse a chair's front with its back, so the search proposes poses and leaves the choice to
 verification. With ``up`` (and no scale) the pose has four degrees of freedom once the query is
-levelled, and the two-point search of :mod:`~catalign.registration.gravity` finds them from
+levelled, and the two-point search of :mod:`~catalign.registration.stages.gravity` finds them from
 pairs of matches, keeping the ``poses_per_view`` best *distinct* ones. Otherwise (no ``up``, or
-``estimate_scale``) the three-point :func:`~catalign.registration.ransac.ransac` gives its one
-best pose, with ``up`` (when given) refusing rotations that tip the chair over.
+``estimate_scale``) the three-point :func:`~catalign.registration.stages.ransac.ransac` gives its
+one best pose, with ``up`` (when given) refusing rotations that tip the chair over.
 """
 
 from __future__ import annotations
@@ -17,20 +17,20 @@ import numpy as np
 
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import make_pose
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import yaw_ransac
-from catalign.registration.match import Matches
-from catalign.registration.ransac import ransac
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.gravity import yaw_ransac
+from catalign.registration.stages.match import Matches
+from catalign.registration.stages.ransac import ransac
 
 # The matches of a pose that came from no matches (carried over, or swept).
 NO_MATCHES = np.zeros((0, 2), dtype=np.int64)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Hypothesis:
     """A model -> observation pose of one candidate, with the matches it came from (rows of
     the view's key points and of the library entry's); ``swept`` when the sweep found it from
-    the model's surface alone (:mod:`~catalign.registration.sweep`)."""
+    the model's surface alone (:mod:`~catalign.registration.stages.sweep`)."""
 
     model_id: str
     transform: np.ndarray

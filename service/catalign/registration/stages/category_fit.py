@@ -10,7 +10,7 @@ steps, the pose staying rigid throughout:
    observed height (within :data:`SIZE_RANGE`), keeping the rigid pose that puts the unscaled
    centre where the scaled fit put it;
 2. **stand upright**: with gravity known a tilt is fitting error, not pose
-   (:func:`~catalign.registration.gravity.level_pose` about the model's centre). A *rough* up
+   (:func:`~catalign.geometry.levelling.level_pose` about the model's centre). A *rough* up
    (a proposal no plane confirmed, good to about ten degrees) is not gravity known: the pose
    stands half-way between it and the ICP's tilt (:func:`rough_up_estimate`);
 3. **centre on the extent**: along each model axis (height, width, depth) on which the view
@@ -30,12 +30,12 @@ from dataclasses import KW_ONLY, dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from catalign.geometry.levelling import level_pose, leveller
 from catalign.geometry.se3 import make_pose
 from catalign.library.index import Library
-from catalign.registration.gravity import level_pose, leveller
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.refine import Refiner
-from catalign.registration.verify import surface_sample
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.refine import Refiner
+from catalign.registration.stages.verify import surface_sample
 
 # A view spanning less of the model along an axis than this has lost that side from sight.
 FULL_SPAN_SHARE = 0.8

@@ -14,7 +14,7 @@ import numpy as np
 
 from catalign.library.index import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
-from catalign.registration.describe import QueryView
+from catalign.registration.stages.describe import QueryView
 
 
 def shortlist(

@@ -2,14 +2,15 @@
 refined answer, and the result they make.
 
 A refined pose on another instance (a loose fit) is given the observed chair's frame by the
-category fit (:mod:`~catalign.registration.category_fit`, with an up); then its fit on the
-query's key points is measured, the :class:`~catalign.registration.confidence.Evidence` for it
-gathered (against every pose tried), and the calibrator, when the weights ship one, reads the
+category fit (:mod:`~catalign.registration.stages.category_fit`, with an up); then its fit on the
+query's key points is measured, the :class:`~catalign.registration.decision.confidence.Evidence`
+for it gathered (against every pose tried), and the calibrator, when the weights ship one, reads the
 probability that it is right from that evidence.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import KW_ONLY, dataclass, replace
 
 import numpy as np
@@ -17,26 +18,16 @@ import numpy as np
 from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.index import Library
-from catalign.registration.answers import best_other
-from catalign.registration.base import Alternative, RegistrationResult
-from catalign.registration.category_fit import CategoryFitter
-from catalign.registration.confidence import Calibrator, Evidence
-from catalign.registration.refine import Fit, Refiner
-from catalign.registration.search import Search
-from catalign.registration.validation import CheckedCloud
-from catalign.registration.verify import Scored, Verifier, best_per_model
-
-
-@dataclass(frozen=True, eq=False)
-class Finished:
-    """An answer made final: where it was found, its pose and score, its fit, evidence and
-    confidence."""
-
-    search: Search
-    item: Scored
-    fit: Fit
-    evidence: Evidence
-    confidence: float | None
+from catalign.registration.decision.answers import best_other
+from catalign.registration.decision.confidence import Calibrator, Evidence
+from catalign.registration.decision.rules import Finished, Refined
+from catalign.registration.prepare.validation import CheckedCloud
+from catalign.registration.results import Alternative, RegistrationResult
+from catalign.registration.stages.category_fit import CategoryFitter
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.refine import Fit, Refiner
+from catalign.registration.stages.request import RequestCache
+from catalign.registration.stages.verify import Scored, best_per_model
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,7 +39,6 @@ class Finisher:
 
     library: Library
     refiner: Refiner
-    verifier: Verifier
     category_fitter: CategoryFitter
     _: KW_ONLY
     icp_distance: float
@@ -57,33 +47,24 @@ class Finisher:
 
     def finish(
         self,
-        search: Search,
-        item: Scored,
-        tried: list[Scored],
-        estimate_scale: bool,
-        *,
+        refined: Refined,
+        tried: Sequence[Scored],
         refit: bool,
+        *,
+        estimate_scale: bool,
+        cache: RequestCache,
     ) -> Finished:
         """A refined answer made final: with an up, another instance (a loose fit) is given
-        the observed chair's frame (the category fit; its ICP at the observed size only with
-        ``refit``, for the winner: for the alternatives it measured a tenth of the query's time
-        and changed little); then its statistics, and the evidence (against every pose
-        ``tried``) and confidence of it."""
-        pose = item.hypothesis
-        fit = self.refiner.fit(pose, search.keypoints)
+        the observed chair's frame (the category fit, once per pose and ``refit`` in the
+        ``cache``; its ICP at the observed size only with ``refit``, for the winner: for the
+        alternatives it measured a tenth of the query's time and changed little); then its
+        evidence (against every pose ``tried``) and confidence."""
+        search, item = refined.search, refined.scored
+        pose, fit = item.hypothesis, refined.fit
         turn = search.turn
         if turn is not None and not estimate_scale and fit.fitness < self.exact_fitness:
-            pose = self.category_fitter.fit(
-                pose,
-                search.keypoints,
-                turn,
-                solid=search.solid,
-                floor_level=search.orientation.floor_level,
-                refit=refit,
-                rough_up=search.orientation.up_rough,
-            )
-            fit = self.refiner.fit(pose, search.keypoints)
-        explained, covered, _ = self.verifier.parts(item.hypothesis, search.checks)
+            pose, fit = cache.category_fit(pose, refit, lambda: self._fitted(refined, refit))
+        explained, covered, _ = refined.parts
         score = max(item.score, 1e-9)
         evidence = Evidence(
             score=item.score,
@@ -103,12 +84,27 @@ class Finisher:
         confidence = None if calibrator is None else calibrator.probability(evidence)
         return Finished(search, replace(item, hypothesis=pose), fit, evidence, confidence)
 
+    def _fitted(self, refined: Refined, refit: bool) -> tuple[Hypothesis, Fit]:
+        """The category fit of a refined pose (module docstring) and the fit it then has."""
+        search = refined.search
+        assert search.turn is not None
+        pose = self.category_fitter.fit(
+            refined.scored.hypothesis,
+            search.keypoints,
+            search.turn,
+            solid=search.solid,
+            floor_level=search.orientation.floor_level,
+            refit=refit,
+            rough_up=search.orientation.up_rough,
+        )
+        return pose, self.refiner.fit(pose, search.keypoints)
+
     def result(
         self,
-        finished: list[Finished],
+        finished: Sequence[Finished],
         cloud: CheckedCloud,
         candidates: list[str],
-        tried: list[Scored],
+        tried: Sequence[Scored],
         timings: dict[str, float],
     ) -> RegistrationResult:
         """The result for the first of the ``finished`` answers (the others are its

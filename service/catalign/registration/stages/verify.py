@@ -1,14 +1,14 @@
 """Verification: scoring pose hypotheses by the surfaces they put together, not by their votes.
 
 Every pose is scored by how much of the query it lays onto the candidate's surface
-(:class:`~catalign.registration.verification.SurfaceCheck`, cheap: every pose gets it), and the
-``verify_top`` best also by how much of that surface inside the observed region the query covers
-(:class:`~catalign.registration.verification.CoverageCheck`). Their product tells a chair's front
-from its side where inlier counts cannot. With ``up``, a layout factor
-(:class:`~catalign.registration.verification.LayoutCheck`: does the query's top lean the way the
-posed model's does) nudges it, which tells the front from the back of another instance. The
-checks themselves live in :mod:`~catalign.registration.verification`; this module applies them
-to hypotheses, with the per-model pieces (surface grid, coverage sample, top offset) cached.
+(:class:`~catalign.registration.stages.surface_checks.SurfaceCheck`, cheap: every pose gets it),
+and the ``verify_top`` best also by how much of that surface inside the observed region the query
+covers (:class:`~catalign.registration.stages.surface_checks.CoverageCheck`). Their product tells a
+chair's front from its side where inlier counts cannot. With ``up``, a layout factor
+(:class:`~catalign.registration.stages.surface_checks.LayoutCheck`: does the query's top lean the
+way the posed model's does) nudges it, which tells the front from the back of another instance. The
+checks themselves live in :mod:`~catalign.registration.stages.surface_checks`; this module applies
+them to hypotheses, with the per-model pieces (surface grid, coverage sample, top offset) cached.
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ import numpy as np
 
 from catalign.frames import MODEL_UP
 from catalign.library.index import Library
-from catalign.registration.base import Candidate
-from catalign.registration.cache import ModelCache
-from catalign.registration.hypothesise import Hypothesis
-from catalign.registration.verification import (
+from catalign.registration.results import Candidate
+from catalign.registration.stages.hypothesise import Hypothesis
+from catalign.registration.stages.model_cache import ModelCache
+from catalign.registration.stages.surface_checks import (
     CoverageCheck,
     LayoutCheck,
     SurfaceCheck,
@@ -41,7 +41,7 @@ class QueryChecks:
     layout: LayoutCheck | None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Scored:
     """A hypothesis and its verification score (higher is better)."""
 

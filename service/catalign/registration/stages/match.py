@@ -4,7 +4,7 @@ Matching cost grows with the product of query and model key points, the pose fou
 does, so both sides take part through fixed random subsets: at most ``match_points`` of the
 query's key points (the same rows for every candidate) and at most ``model_points`` of each
 model's (drawn once per model and cached, as :class:`Matchable`). Correspondences are mutual
-feature nearest neighbours (:func:`~catalign.registration.alignment.mutual_nearest`).
+feature nearest neighbours (:func:`~catalign.registration.stages.nearest.mutual_nearest`).
 
 Of the headings the query was described at, only the ``keep_headings`` whose features agree
 best with the leading candidates' are matched in full. Library models share the category's
@@ -23,10 +23,10 @@ from dataclasses import KW_ONLY, dataclass, field
 import numpy as np
 
 from catalign.library.index import Library
-from catalign.registration.alignment import mutual_count, mutual_nearest
-from catalign.registration.cache import ModelCache
-from catalign.registration.describe import QueryView
-from catalign.registration.gravity import yaw_ransac
+from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.gravity import yaw_ransac
+from catalign.registration.stages.model_cache import ModelCache
+from catalign.registration.stages.nearest import mutual_count, mutual_nearest
 
 # Model subsets are drawn with this seed, so a model matches through the same key points
 # whatever the query's seed.

@@ -19,7 +19,7 @@ Proposed ups are snapped to the largest plane nearly perpendicular to them
 few. A proposal with no plane near it is searched as it is, marked rough (:class:`SearchedUp`):
 the category fit does not stand another instance on it alone. The **floor** is found here
 too, because where the floor is depends on which way is up
-(:func:`~catalign.registration.cleanup.floor_mask`): under the given up, or under the first
+(:func:`~catalign.registration.prepare.cleanup.floor_mask`): under the given up, or under the first
 proposed up that has a floor beneath the cloud and spreads past the chair (a chair's back or
 side is flat too: :data:`GUESSED_FLOOR_SPREAD`), and, given or guessed, that leaves a query's
 worth of object standing on it (``min_voxels`` occupied voxels). A floor is the best witness
@@ -38,12 +38,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from catalign.features.orientation import OrientationProposer
+from catalign.geometry.levelling import leveller
 from catalign.geometry.sampling import voxel_downsample
-from catalign.registration.base import Orientation
-from catalign.registration.cleanup import cone_planes, floor_mask
-from catalign.registration.describe import even_headings
-from catalign.registration.gravity import leveller
-from catalign.registration.validation import MIN_VOXELS
+from catalign.registration.prepare.cleanup import cone_planes, floor_mask
+from catalign.registration.prepare.validation import MIN_VOXELS
+from catalign.registration.results import Orientation
+from catalign.registration.stages.describe import even_headings
 
 # Up proposals snap to the largest plane within this angle of them (module docstring) ...
 SNAP_DEG = 15.0
@@ -55,7 +55,7 @@ SNAP_TOLERANCE_VOXELS = 0.4
 SNAP_SHARE = 0.1
 SNAP_MIN_POINTS = 30
 # Under a proposed up, a floor must spread this many times wider than the chair's shadow on it
-# (:func:`~catalign.registration.cleanup.spread`): under the first proposal, then under the
+# (:func:`~catalign.registration.prepare.cleanup.spread`): under the first proposal, then under the
 # less likely others. On the evaluation's so3 views (seeds 0 and 1, no floor) a chair's back or
 # side passed every other rule of a floor in 18 of 107 views, 12 of them under the second or
 # third proposal, where it spread 0.6 to 1.9 times the rest of the chair. A floor disc reaching

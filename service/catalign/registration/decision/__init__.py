@@ -1,0 +1,2 @@
+"""The decision: which refined pose is the answer, its alternatives, its evidence and
+confidence."""

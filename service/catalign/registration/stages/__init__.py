@@ -1,0 +1,2 @@
+"""The query stages: features, shortlist, matches, poses, sweep, verification, ICP and the
+category fit."""
