@@ -3,8 +3,10 @@
 :class:`RegistrationService` loads the extractor and the library once, runs every registration
 on the bounded :class:`~catalign.api.pool.WorkPool`, and serialises library changes: each change
 is written with :mod:`catalign.library` (atomic on disk), the library is loaded again and a new
-:class:`~catalign.registration.engine.Engine` replaces the old one in a single assignment, so
-requests already running finish on the library they started with. Changes made by another
+:class:`Served` (the extractor, the library and, where registrations run on the server's own
+threads, an :class:`~catalign.registration.engine.Engine`; worker processes build their own)
+replaces the old one in a single assignment, so requests already running finish on the library
+they started with. Changes made by another
 process (``catalign library add`` on the served folder) are noticed by the manifest's file stamp
 and loaded before the next request that reads the library. Every registration runs under a
 :class:`~catalign.deadline.Deadline` of ``deadline_s`` from its arrival, so neither a slow
@@ -39,16 +41,28 @@ from catalign.api.spool import Spool
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError, ShapeReadError
 from catalign.library.store import manifest_stamp
+from catalign.registration.config import served_config
 from catalign.threads import limit_threads
 
 if TYPE_CHECKING:
     from catalign.features.extractor import LearnedExtractor
     from catalign.library.entry import LibraryEntry
     from catalign.library.index import Library
-    from catalign.registration.base import RegistrationResult
     from catalign.registration.engine import Engine
+    from catalign.registration.results import RegistrationResult
 
 logger = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class Served:
+    """What the server process serves, replaced in one assignment on a library change: the
+    extractor, the library, and the engine when registrations run on the server's own threads
+    (None with worker processes, which build their own)."""
+
+    extractor: LearnedExtractor
+    library: Library
+    engine: Engine | None
 
 
 class RegistrationService:
@@ -58,7 +72,7 @@ class RegistrationService:
         self.settings = settings
         self.metrics = metrics
         self.ready = False
-        self._engine: Engine | None = None
+        self._served: Served | None = None
         self._pool: WorkPool | None = None
         self._processes: EngineProcesses | None = None
         self._changes = asyncio.Lock()
@@ -89,7 +103,7 @@ class RegistrationService:
         one (worker processes warmed up as they started)."""
         try:
             if self.settings.warmup and self._processes is None:
-                await asyncio.wrap_future(self.pool.submit(warm_up, self.engine))
+                await asyncio.wrap_future(self.pool.submit(warm_up, self.served.engine))
         except CatalignError as error:
             logger.warning("warm-up registration refused: %s", error)
         self.ready = True
@@ -104,10 +118,10 @@ class RegistrationService:
         await asyncio.to_thread(self.spool.close)
 
     @property
-    def engine(self) -> Engine:
-        if self._engine is None:
+    def served(self) -> Served:
+        if self._served is None:
             raise ConfigError("the service has not loaded its model and library yet")
-        return self._engine
+        return self._served
 
     @property
     def pool(self) -> WorkPool:
@@ -117,7 +131,7 @@ class RegistrationService:
 
     @property
     def library(self) -> Library:
-        return self.engine.library
+        return self.served.library
 
     # queries ----------------------------------------------------------------------------------
 
@@ -146,13 +160,13 @@ class RegistrationService:
         """
         deadline = Deadline(min(self.settings.deadline_s, deadline_s or self.settings.deadline_s))
         await self.refresh(slot)
-        engine = self.engine
-        if len(engine.library) == 0:
+        served = self.served
+        if len(served.library) == 0:
             raise EmptyLibraryError("the library has no models; add one with POST /models")
         submitted = time.perf_counter()
         try:
             result = await self.pool.run(
-                self._register, engine, query, submitted, deadline, slot=slot, deadline=deadline
+                self._register, served, query, submitted, deadline, slot=slot, deadline=deadline
             )
         except DeadlineExceededError:
             self.metrics.stopped.labels("deadline").inc()
@@ -185,15 +199,15 @@ class RegistrationService:
             stamp = manifest_stamp(self.settings.library)
             if stamp == self._stamp:
                 return
-            engine = self.engine
+            extractor = self.served.extractor
             try:
-                library = await self.pool.run(self._reload, engine.extractor, slot=slot)
+                library = await self.pool.run(self._reload, extractor, slot=slot)
             except CatalignError as error:
                 logger.warning("library changed on disk but cannot be loaded: %s", error)
                 self._stamp = stamp
                 return
             self._stamp = stamp  # read before the load: a change during it is loaded next time
-            self._engine = self._make_engine(engine.extractor, library)
+            self._served = self._serve(extractor, library)
             self.metrics.library_models.set(len(library))
             logger.info("library changed on disk: now %d models", len(library))
 
@@ -201,23 +215,25 @@ class RegistrationService:
         import open3d
         import torch
 
-        engine = self.engine
-        manifest = engine.library.manifest
-        extractor: LearnedExtractor = engine.extractor  # type: ignore[assignment]
+        served = self.served
+        manifest = served.library.manifest
+        extractor = served.extractor
+        config = served_config(self.settings.engine, manifest.engine)
+        headings = extractor.headings if config.headings is None else config.headings
         return InfoResponse(
             version=catalign.__version__,
             model_card=extractor.card,
             library=LibraryInfo(
                 path=str(self.settings.library),
                 format_version=manifest.format_version,
-                models=len(engine.library),
+                models=len(served.library),
                 fingerprint=manifest.fingerprint,
                 updated=manifest.updated,
                 engine=manifest.engine,
             ),
             voxel_size=extractor.voxel_size,
-            headings=engine.headings,
-            engine=engine.config.model_copy(update={"headings": engine.headings}),
+            headings=headings,
+            engine=config.model_copy(update={"headings": headings}),
             versions=Versions(
                 python=platform.python_version(),
                 torch=str(torch.__version__),
@@ -268,11 +284,11 @@ class RegistrationService:
         self, check: Callable[[Library], None], change: Callable[..., Library], *args: object
     ) -> Library:
         async with self._changes:
-            engine = self.engine
-            check(engine.library)
-            library = await self.pool.run(change, engine.extractor, *args)
+            extractor = self.served.extractor
+            check(self.served.library)
+            library = await self.pool.run(change, extractor, *args)
             self._stamp = manifest_stamp(self.settings.library)
-            self._engine = self._make_engine(engine.extractor, library)
+            self._served = self._serve(extractor, library)
             self.metrics.library_models.set(len(library))
             return library
 
@@ -286,7 +302,7 @@ class RegistrationService:
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
         self._stamp = manifest_stamp(self.settings.library)
         library = load(self.settings.library, extractor.fingerprint)
-        self._engine = self._make_engine(extractor, library)
+        self._served = self._serve(extractor, library)
         self.metrics.library_models.set(len(library))
         logger.info(
             "loaded %s and %d models from %s in %.1f s",
@@ -301,11 +317,15 @@ class RegistrationService:
 
         return load(self.settings.library, extractor.fingerprint)
 
-    def _make_engine(self, extractor: LearnedExtractor, library: Library) -> Engine:
-        return served_engine(extractor, library, self.settings)
+    def _serve(self, extractor: LearnedExtractor, library: Library) -> Served:
+        """What the server holds: the extractor and the library, and an engine where
+        registrations run on its own threads (worker processes build their own)."""
+        threads = not self.settings.worker_processes
+        engine = served_engine(extractor, library, self.settings) if threads else None
+        return Served(extractor, library, engine)
 
     def _register(
-        self, engine: Engine, query: PointQuery, submitted: float, deadline: Deadline
+        self, served: Served, query: PointQuery, submitted: float, deadline: Deadline
     ) -> RegistrationResult:
         timings = {"queue": (time.perf_counter() - submitted) * 1e3}
         points = query.points
@@ -325,8 +345,8 @@ class RegistrationService:
             "estimate_scale": options.estimate_scale,
             "seed": options.seed,
         }
-        if self._processes is None:
-            result = engine.register(points, **engine_options, deadline=deadline)
+        if served.engine is not None:
+            result = served.engine.register(points, **engine_options, deadline=deadline)
         else:
             job = Job(points, engine_options, deadline.remaining, self._stamp)
             result = self._processes.register(job, deadline)
