@@ -17,9 +17,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "service" / "catalign"
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
-# The one known exception, listed in docs/architecture.md: the extractor loads the answers'
-# calibrator with the weights.
-KNOWN = {("catalign.features.extractor", "catalign.registration.decision.confidence")}
 
 
 def layers() -> dict[str, int]:
@@ -71,7 +68,7 @@ def upward_imports(table: dict[str, int]) -> list[str]:
             continue
         mine = layer_of(module, table)
         for imported in imports_of(path.read_text(), module):
-            if layer_of(imported, table) > mine and (module, imported) not in KNOWN:
+            if layer_of(imported, table) > mine:
                 upward.append(f"{module} -> {imported}")
     return upward
 
@@ -90,14 +87,6 @@ def test_every_package_has_a_layer() -> None:
 
 def test_no_module_imports_from_a_higher_layer() -> None:
     assert upward_imports(layers()) == []
-
-
-def test_the_known_exception_is_still_there() -> None:
-    """When the extractor no longer loads the calibrator, the exception leaves the list (and
-    docs/architecture.md)."""
-    source = (PACKAGE / "features" / "extractor.py").read_text()
-    for module, imported in KNOWN:
-        assert imported in imports_of(source, module)
 
 
 @pytest.mark.parametrize(

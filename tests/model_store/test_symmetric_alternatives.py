@@ -17,6 +17,7 @@ from catalign.data.views import camera_at, render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import make_pose, rotation_error_deg
 from catalign.library.index import build, load
+from catalign.registration.decision.confidence import find_calibrator
 from catalign.registration.engine import Engine
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -58,7 +59,7 @@ def engine(tmp_path_factory: pytest.TempPathFactory) -> Engine:
     if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
         pytest.skip("model_store/ has no trained weights")
     extractor = LearnedExtractor()
-    if extractor.confidence is None:
+    if find_calibrator(extractor.model_dir) is None:
         pytest.skip("model_store/ ships no confidence calibrator")
     sources = tmp_path_factory.mktemp("bench") / "sources"
     sources.mkdir()

@@ -51,12 +51,11 @@ def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
     rows = Samples.load(out / "samples.npz").matrix()
     np.testing.assert_allclose(refitted.probabilities(rows), calibrator.probabilities(rows))
 
-    # The engine reads it from the weights' folder and every answer gets a probability.
+    # Given to the engine, it gives every answer a probability.
     extractor = LearnedExtractor()
-    extractor.confidence = calibrator
     chairs = SharedChairs(chairs_root)
     shapes = {i: to_metric(chairs.load(i)) for i in chairs.ids("val")[:2]}
-    registrar = IndexedRegistrar(extractor, name="learned", up=WORLD_UP)
+    registrar = IndexedRegistrar(extractor, name="learned", up=WORLD_UP, calibrator=calibrator)
     registrar.prepare([LibraryShape(i, s.points) for i, s in shapes.items()])
     case = build_cases(shapes, 1, seed=5)[0]
     answer = registrar.register(case.points, seed=0)

@@ -18,7 +18,6 @@ import torch
 
 from catalign.features.orientation import OrientationProposer, find_orientation
 from catalign.paths import DEFAULT_MODEL_DIR
-from catalign.registration.decision.confidence import Calibrator, find_calibrator
 
 
 @dataclass(frozen=True)
@@ -32,14 +31,15 @@ class Described:
 class FeatureExtractor(Protocol):
     """What registration and the library need of an extractor: its voxel size, its fingerprint,
     how many headings a query must be described at, the orientation proposals that choose them
-    (None: every heading, and no up is proposed), the calibrator of the answers' confidence
-    (None: answers carry none), and the description itself."""
+    (None: every heading, and no up is proposed), the folder of its weights (None for a
+    descriptor without any; the engine reads the answers' calibrator there), and the description
+    itself."""
 
     voxel_size: float
     fingerprint: str
     headings: int
     orientation: OrientationProposer | None
-    confidence: Calibrator | None
+    model_dir: Path | None
 
     def describe(self, points: np.ndarray) -> Described: ...
 
@@ -51,8 +51,8 @@ class LearnedExtractor:
 
     ``headings`` is how many headings a query must be tried at: 8 for a model trained on
     ``yaw-bin`` rotations (it only knows headings within 22.5 degrees), 4 for ``yaw-quarter``,
-    else 1. ``orientation`` is the proposer in the folder's ``orientation/`` and ``confidence``
-    the calibrator in its ``confidence/``, when it has them.
+    else 1. ``orientation`` is the proposer in the folder's ``orientation/``, when it has one;
+    ``model_dir`` the folder itself (its ``confidence/`` calibrator is the engine's to read).
     """
 
     def __init__(self, model_dir: Path | None = None, threads: int | None = None) -> None:
@@ -64,7 +64,7 @@ class LearnedExtractor:
         rotation = self.card.get("training", {}).get("rotation", "upright")
         self.headings = YAW_BINS.get(rotation, 1)
         self.orientation = find_orientation(model_dir or DEFAULT_MODEL_DIR)
-        self.confidence = find_calibrator(model_dir or DEFAULT_MODEL_DIR)
+        self.model_dir = model_dir or DEFAULT_MODEL_DIR
         if threads is not None:
             torch.set_num_threads(threads)
 
@@ -85,7 +85,7 @@ class FPFHExtractor:
 
     headings = 1  # rotation-invariant: one heading describes every heading
     orientation = None
-    confidence = None
+    model_dir = None
 
     def __init__(self, voxel_size: float = 0.025) -> None:
         self.voxel_size = voxel_size

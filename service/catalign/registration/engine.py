@@ -54,6 +54,7 @@ from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import Library
 from catalign.registration.config import EngineConfig, from_config
+from catalign.registration.decision.confidence import Calibrator, find_calibrator
 from catalign.registration.decision.finish import Finisher
 from catalign.registration.decision.rules import Decision, Found, Refined, Rules, decide
 from catalign.registration.prepare.cleanup import detached_mask
@@ -76,6 +77,12 @@ from catalign.registration.stages.searcher import Searcher
 from catalign.registration.stages.sweep import Sweeper
 from catalign.registration.stages.verify import Scored, Verifier
 
+
+class FromWeights:
+    """The default calibrator: the one in the extractor's weights folder, if it has one."""
+
+
+FROM_WEIGHTS = FromWeights()
 # The stages a query's ``timings_ms`` name, in the order they run.
 STAGES = (
     "validate",
@@ -107,6 +114,8 @@ class Engine:
         result = engine.register(points, up=np.array([0.0, 0.0, 1.0]), seed=0)
 
     ``config`` holds every option (:class:`EngineConfig`, its defaults when not given);
+    ``calibrator`` reads each answer's confidence (by default the one beside the extractor's
+    weights, if any; None: answers carry none);
     ``headings`` (the config's, else the extractor's), ``ransac_distance`` and ``icp_distance``
     (metres) are what the engine made of it.
     """
@@ -117,8 +126,12 @@ class Engine:
         library: Library,
         *,
         config: EngineConfig | None = None,
+        calibrator: Calibrator | FromWeights | None = FROM_WEIGHTS,
     ) -> None:
         config = EngineConfig() if config is None else config
+        if isinstance(calibrator, FromWeights):
+            weights = extractor.model_dir
+            calibrator = None if weights is None else find_calibrator(weights)
         voxel = extractor.voxel_size
         self.extractor, self.library, self.config = extractor, library, config
         self.headings = extractor.headings if config.headings is None else config.headings
@@ -147,7 +160,7 @@ class Engine:
             fitter,
             icp_distance=self.icp_distance,
             exact_fitness=config.exact_fitness,
-            calibrator=extractor.confidence,
+            calibrator=calibrator,
         )
 
     def register(

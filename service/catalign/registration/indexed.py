@@ -18,13 +18,15 @@ import trimesh
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.index import build, load
 from catalign.registration.config import EngineConfig
-from catalign.registration.engine import Engine
+from catalign.registration.decision.confidence import Calibrator
+from catalign.registration.engine import FROM_WEIGHTS, Engine, FromWeights
 from catalign.registration.results import LibraryShape, Registrar, RegistrationResult
 
 
 class IndexedRegistrar(Registrar):
     """The engine, prepared from in-memory shapes through an on-disk index; ``config`` is the
-    engine's (its defaults when not given), ``up`` the world's up direction when known."""
+    engine's (its defaults when not given), ``up`` the world's up direction when known,
+    ``calibrator`` the engine's (by default the one beside the extractor's weights)."""
 
     def __init__(
         self,
@@ -33,8 +35,10 @@ class IndexedRegistrar(Registrar):
         name: str,
         up: np.ndarray | None = None,
         config: EngineConfig | None = None,
+        calibrator: Calibrator | FromWeights | None = FROM_WEIGHTS,
     ) -> None:
         self.extractor = extractor
+        self.calibrator = calibrator
         self.name = name
         self.up = up
         self.config = config
@@ -52,7 +56,7 @@ class IndexedRegistrar(Registrar):
                     mesh.export(sources / f"{shape.model_id}.ply")
             build([sources], Path(folder) / "index", self.extractor, progress=False)
             index = load(Path(folder) / "index", self.extractor.fingerprint)
-        self.engine = Engine(self.extractor, index, config=self.config)
+        self.engine = Engine(self.extractor, index, config=self.config, calibrator=self.calibrator)
 
     def register(self, points: np.ndarray, *, seed: int = 0) -> RegistrationResult:
         if self.engine is None:
