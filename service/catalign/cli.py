@@ -16,10 +16,13 @@ import typer
 from catalign.cli_support import EngineOptions, exit_on_error, options_to
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
+from catalign.training.config import CalibrationConfig, OrientationConfig, TrainConfig
 
 if TYPE_CHECKING:
     from catalign.registration.config import EngineConfig
 
+# Training commands' defaults are their configurations' (one source for each value).
+TRAIN, ORIENTATION, CALIBRATION = TrainConfig(), OrientationConfig(), CalibrationConfig()
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(library_app, name="library")
 
@@ -159,48 +162,57 @@ def neighbours(
 
 @app.command()
 def train(
-    out: Annotated[Path, typer.Option(help="Run folder: state, CSV log, final weights.")] = Path(
-        "runs/default"
-    ),
-    model: Annotated[str, typer.Option(help="ResUNetBN2C or ResUNetSmall.")] = "ResUNetBN2C",
+    out: Annotated[
+        Path, typer.Option(help="Run folder: state, CSV log, final weights.")
+    ] = TRAIN.out,
+    model: Annotated[str, typer.Option(help="ResUNetBN2C or ResUNetSmall.")] = TRAIN.model,
     curriculum: Annotated[
         str, typer.Option(help="ncc (the paper's) or same-only (the FCGF ablation).")
-    ] = "ncc",
-    loss: Annotated[str, typer.Option(help="hardest (FCGF) or contrastive (random negatives).")] = (
-        "hardest"
-    ),
-    stage1_steps: Annotated[int, typer.Option(min=0, help="Same-instance steps.")] = 600,
-    stage2_steps: Annotated[int, typer.Option(min=0, help="Curriculum stage-2 steps.")] = 900,
-    batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = 2,
-    voxel_size: Annotated[float, typer.Option(help="Voxel size in metres.")] = 0.025,
+    ] = TRAIN.curriculum,
+    loss: Annotated[
+        str, typer.Option(help="hardest (FCGF) or contrastive (random negatives).")
+    ] = TRAIN.loss,
+    stage1_steps: Annotated[
+        int, typer.Option(min=0, help="Same-instance steps.")
+    ] = TRAIN.stage1_steps,
+    stage2_steps: Annotated[
+        int, typer.Option(min=0, help="Curriculum stage-2 steps.")
+    ] = TRAIN.stage2_steps,
+    batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = TRAIN.batch_size,
+    voxel_size: Annotated[
+        float, typer.Option(help="Voxel size in metres (recorded in the model card).")
+    ] = TRAIN.voxel_size,
     rotation: Annotated[
         str,
         typer.Option(
             help="Augmentation: upright (any yaw), yaw-bin (+-22.5 deg, 8 query headings), "
             "yaw-quarter (+-45 deg, 4 headings) or so3."
         ),
-    ] = "upright",
-    procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 0,
+    ] = TRAIN.rotation,
+    procedural: Annotated[
+        int, typer.Option(min=0, help="Procedural chairs to add.")
+    ] = TRAIN.procedural,
     view_so3_share: Annotated[
         float,
         typer.Option(
             min=0, max=1, help="Share of views of the chair in any rotation (from below)."
         ),
-    ] = 0.0,
-    learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
-    seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = 0,
-    validate_every: Annotated[int, typer.Option(min=1, help="Steps between validations.")] = 100,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = 2,
+    ] = TRAIN.view_so3_share,
+    learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = TRAIN.learning_rate,
+    seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = TRAIN.seed,
+    validate_every: Annotated[
+        int, typer.Option(min=1, help="Steps between validations.")
+    ] = TRAIN.validate_every,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = TRAIN.threads,
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a shared stage 1).")
-    ] = None,
+    ] = TRAIN.init_from,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
 ) -> None:
     """Train the feature extractor; an interrupted run continues from its last checkpoint."""
     from catalign.data.shapes import SharedChairs
-    from catalign.training.config import TrainConfig
     from catalign.training.loop import train as run_training
     from catalign.training.loop import training_shapes
 
@@ -232,40 +244,50 @@ def train(
 
 @app.command("train-orientation")
 def train_orientation(
-    out: Annotated[Path, typer.Option(help="Run folder: cached views, weights and card.")] = Path(
-        "runs/orientation"
-    ),
-    steps: Annotated[int, typer.Option(min=1, help="Optimizer steps.")] = 3_000,
-    batch_size: Annotated[int, typer.Option(min=1, help="Views per step.")] = 64,
-    views_per_shape: Annotated[int, typer.Option(min=1, help="Views rendered per shape.")] = 48,
-    procedural: Annotated[int, typer.Option(min=0, help="Procedural chairs to add.")] = 60,
-    seed: Annotated[int, typer.Option(help="Seed of views, samples and initial weights.")] = 0,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = 2,
-    learning_rate: Annotated[float, typer.Option(help="Peak learning rate.")] = 2e-3,
+    out: Annotated[
+        Path, typer.Option(help="Run folder: cached views, weights and card.")
+    ] = ORIENTATION.out,
+    steps: Annotated[int, typer.Option(min=1, help="Optimizer steps.")] = ORIENTATION.steps,
+    batch_size: Annotated[
+        int, typer.Option(min=1, help="Views per step.")
+    ] = ORIENTATION.batch_size,
+    views_per_shape: Annotated[
+        int, typer.Option(min=1, help="Views rendered per shape.")
+    ] = ORIENTATION.views_per_shape,
+    procedural: Annotated[
+        int, typer.Option(min=0, help="Procedural chairs to add.")
+    ] = ORIENTATION.procedural,
+    seed: Annotated[
+        int, typer.Option(help="Seed of views, samples and initial weights.")
+    ] = ORIENTATION.seed,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = ORIENTATION.threads,
+    learning_rate: Annotated[
+        float, typer.Option(help="Peak learning rate.")
+    ] = ORIENTATION.learning_rate,
     up_frame: Annotated[
         str, typer.Option(help="Frame the up network sees a view in: view or principal.")
-    ] = "view",
+    ] = ORIENTATION.up_frame,
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a longer schedule).")
-    ] = None,
+    ] = ORIENTATION.init_from,
     networks: Annotated[
         str,
         typer.Option(
             help="Networks to train: both, up or heading (the other keeps --init-from's weights)."
         ),
-    ] = "both",
+    ] = ORIENTATION.networks,
     fused_share: Annotated[
         float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
-    ] = 0.0,
+    ] = ORIENTATION.fused_share,
     so3_share: Annotated[
         float, typer.Option(help="Share of views rendered in any rotation (the rest upright).")
-    ] = 0.5,
+    ] = ORIENTATION.so3_share,
     up_width: Annotated[
         int | None,
         typer.Option(
             min=1, help="Up network width, if not 16 (afresh where --init-from's has another)."
         ),
-    ] = None,
+    ] = ORIENTATION.up_width,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -273,7 +295,7 @@ def train_orientation(
     """Train the orientation proposal networks (up and heading) on views of training chairs."""
     from catalign.data.shapes import SharedChairs
     from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
-    from catalign.training.orientation import OrientationConfig, run
+    from catalign.training.orientation import run
 
     config = options_to(
         OrientationConfig,
@@ -303,11 +325,13 @@ def train_orientation(
 
 @app.command()
 def calibrate(
-    out: Annotated[Path, typer.Option(help="Folder of the calibrator (ships in model_store/).")] = (
-        Path("model_store/confidence")
-    ),
-    views: Annotated[int, typer.Option(min=1, help="Views per training chair and mode.")] = 2,
-    seed: Annotated[int, typer.Option(help="Seed of the views and of RANSAC.")] = 2_000,
+    out: Annotated[
+        Path, typer.Option(help="Folder of the calibrator (ships in model_store/).")
+    ] = CALIBRATION.out,
+    views: Annotated[
+        int, typer.Option(min=1, help="Views per training chair and mode.")
+    ] = CALIBRATION.views,
+    seed: Annotated[int, typer.Option(help="Seed of the views and of RANSAC.")] = CALIBRATION.seed,
     pose_mode: Annotated[
         list[str] | None,
         typer.Option(help="upright (up given) and/or so3 (no up); repeat; both if unset."),
@@ -330,7 +354,7 @@ def calibrate(
     """Fit the answers' confidence (boosted trees) on views of the training chairs."""
     from catalign.data.shapes import SharedChairs
     from catalign.features.extractor import LearnedExtractor
-    from catalign.training.calibration import CalibrationConfig, run
+    from catalign.training.calibration import run
 
     modes = tuple(pose_mode or ("upright", "so3"))
     with exit_on_error():

@@ -19,6 +19,8 @@ from catalign.registration.prepare.cleanup import detached_mask, fit_floor, floo
 from catalign.registration.prepare.orient import GUESSED_FLOOR_SPREAD
 
 UP = np.array([0.0, 0.0, 1.0])
+# The shipped model's voxel (its card's): the clean-up reads distances in voxels of it.
+VOXEL = 0.025
 # One chair of each kind whose parts do not lie on the floor (a pedestal's base plate or sled
 # runners lose their bottom 1.5 cm with the floor: see the module docstring).
 FLOOR_SEEDS = (2, 0, 8, 9, 13, 15)  # chair, office, armchair, sofa, bench, stool
@@ -66,11 +68,13 @@ def tilted(degrees: float, rng: np.random.Generator) -> np.ndarray:
 def test_finds_a_ring_of_floor_around_a_chair(seed: int) -> None:
     points, is_floor = chair_view(seed, np.random.default_rng(100 + seed), floor_margin=0.3)
     assert is_floor.sum() > 500
-    mask = floor_mask(points, UP)
+    mask = floor_mask(points, UP, voxel=VOXEL)
     assert mask[is_floor].mean() >= 0.95
     assert mask[~is_floor].mean() <= 0.03
     # It spreads well past the chair: found under a guessed up too.
-    assert np.array_equal(floor_mask(points, UP, min_spread=GUESSED_FLOOR_SPREAD[0]), mask)
+    assert np.array_equal(
+        floor_mask(points, UP, min_spread=GUESSED_FLOOR_SPREAD[0], voxel=VOXEL), mask
+    )
 
 
 def test_masks_nothing_when_no_floor_is_in_view() -> None:
@@ -79,7 +83,7 @@ def test_masks_nothing_when_no_floor_is_in_view() -> None:
         rng = np.random.default_rng(200 + seed)
         for _ in range(2):
             points, _ = chair_view(seed, rng)
-            shares.append(floor_mask(points, UP).mean())
+            shares.append(floor_mask(points, UP, voxel=VOXEL).mean())
     assert max(shares) <= 0.02
     assert sum(share > 0 for share in shares) <= 1
 
@@ -89,10 +93,10 @@ def test_finds_the_floor_when_up_is_tilted_8_degrees(seed: int) -> None:
     rng = np.random.default_rng(300 + seed)
     points, is_floor = chair_view(seed, rng, floor_margin=0.3)
     up = tilted(8.0, rng)
-    mask = floor_mask(points, up)
+    mask = floor_mask(points, up, voxel=VOXEL)
     assert mask[is_floor].mean() >= 0.95
     assert mask[~is_floor].mean() <= 0.03
-    fit = fit_floor(points, up)
+    fit = fit_floor(points, up, voxel=VOXEL)
     assert fit is not None and fit.is_floor
     assert np.degrees(np.arccos(min(1.0, abs(fit.normal @ UP)))) < 1.0
 
@@ -101,7 +105,7 @@ def test_a_tilted_up_does_not_make_a_floor_of_a_chair() -> None:
     for seed in (0, 9, 13):
         rng = np.random.default_rng(400 + seed)
         points, _ = chair_view(seed, rng)
-        assert floor_mask(points, tilted(8.0, rng)).mean() <= 0.02
+        assert floor_mask(points, tilted(8.0, rng), voxel=VOXEL).mean() <= 0.02
 
 
 def test_sets_aside_a_small_cluster_half_a_metre_away() -> None:
@@ -155,9 +159,11 @@ def test_a_cloud_spanning_a_far_point_stays_bounded() -> None:
 
 def test_tiny_clouds_give_empty_masks() -> None:
     points = np.random.default_rng(9).normal(size=(9, 3))
-    assert not floor_mask(points, UP).any() and floor_mask(points, UP).shape == (9,)
+    assert not floor_mask(points, UP, voxel=VOXEL).any() and floor_mask(
+        points, UP, voxel=VOXEL
+    ).shape == (9,)
     assert not detached_mask(points).any() and detached_mask(points).shape == (9,)
-    assert floor_mask(np.zeros((0, 3)), UP).shape == (0,)
+    assert floor_mask(np.zeros((0, 3)), UP, voxel=VOXEL).shape == (0,)
     assert detached_mask(np.zeros((0, 3))).shape == (0,)
 
 
@@ -175,7 +181,7 @@ def test_tiny_clouds_give_empty_masks() -> None:
 )
 def test_refuses_bad_points(points) -> None:
     with pytest.raises(InvalidInputError):
-        floor_mask(points, UP)
+        floor_mask(points, UP, voxel=VOXEL)
     with pytest.raises(InvalidInputError):
         detached_mask(points)
 
@@ -183,7 +189,7 @@ def test_refuses_bad_points(points) -> None:
 @pytest.mark.parametrize("up", [np.zeros(3), np.array([0.0, np.nan, 1.0]), np.ones(2), "up"])
 def test_refuses_a_bad_up(up) -> None:
     with pytest.raises(InvalidInputError):
-        floor_mask(np.random.default_rng(0).normal(size=(50, 3)), up)
+        floor_mask(np.random.default_rng(0).normal(size=(50, 3)), up, voxel=VOXEL)
 
 
 @pytest.mark.parametrize("length", [0.0, -0.1, float("nan"), float("inf"), True])

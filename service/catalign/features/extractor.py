@@ -80,6 +80,11 @@ class LearnedExtractor:
         return [Described(c.numpy().astype(np.float64), f.numpy()) for c, f in described]
 
 
+# The classic recipe's voxel (Open3D's global registration example at chair scale); the learned
+# extractor's comes from its model card.
+FPFH_VOXEL = 0.025
+
+
 class FPFHExtractor:
     """Open3D's FPFH (33-D) on a voxel-down-sampled cloud: normals within 2 voxels, FPFH 5."""
 
@@ -87,7 +92,7 @@ class FPFHExtractor:
     orientation = None
     model_dir = None
 
-    def __init__(self, voxel_size: float = 0.025) -> None:
+    def __init__(self, voxel_size: float = FPFH_VOXEL) -> None:
         self.voxel_size = voxel_size
         self.fingerprint = f"fpfh-v1-{voxel_size:g}"
 

@@ -32,8 +32,8 @@ def _fpfh(model_dir: Path | None, up: np.ndarray | None, engine: EngineConfig | 
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.baseline.fpfh import FeatureRegistrar
 
-    voxel = 0.025
-    extractor = FPFHExtractor(voxel)
+    extractor = FPFHExtractor()
+    voxel = extractor.voxel_size
     return FeatureRegistrar(extractor, name="fpfh", ransac_distance=1.5 * voxel, icp_distance=voxel)
 
 
@@ -53,7 +53,7 @@ def _fpfh_engine(
     from catalign.features.extractor import FPFHExtractor
     from catalign.registration.indexed import IndexedRegistrar
 
-    return IndexedRegistrar(FPFHExtractor(0.025), name="fpfh-engine", up=up, config=engine)
+    return IndexedRegistrar(FPFHExtractor(), name="fpfh-engine", up=up, config=engine)
 
 
 METHODS: dict[str, Callable[[Path | None, np.ndarray | None, EngineConfig | None], Registrar]] = {

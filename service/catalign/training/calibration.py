@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from catalign.data.shapes import Shape, SharedChairs
-from catalign.data.views import WORLD_UP, PoseMode
+from catalign.data.views import WORLD_UP
 from catalign.errors import ConfigError, InvalidInputError
 from catalign.evaluation.metrics import (
     auroc,
@@ -39,7 +39,6 @@ from catalign.evaluation.metrics import (
 from catalign.evaluation.protocol import TestCase, build_cases, frames_of, metric_shapes
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.ncc import NCCFrame
-from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.decision.confidence import (
     CALIBRATOR_FILE,
     SIGNALS,
@@ -49,9 +48,8 @@ from catalign.registration.decision.confidence import (
 )
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.registration.results import LibraryShape, RegistrationResult
+from catalign.training.config import CalibrationConfig
 
-# The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
-CALIBRATION_SEED = 2_000
 SAMPLES_FILE = "samples.npz"
 # The trees: 200 of depth 3 (8 leaves at most), each leaf holding 20 answers or more. Set before
 # they were scored; two other shapes scored within 0.01 of them on average on the validation
@@ -67,24 +65,6 @@ BOOSTING = {
 # Folds of the *cross* setting: the more, the closer each library's size to the evaluation's
 # (a larger library offers more near misses, so an answer is less often right).
 CROSS_FOLDS = 4
-
-
-@dataclass(frozen=True)
-class CalibrationConfig:
-    """What ``catalign calibrate`` fits on; ``command()`` is the line that reproduces it."""
-
-    out: Path = DEFAULT_MODEL_DIR / "confidence"
-    views: int = 2
-    seed: int = CALIBRATION_SEED
-    pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
-    max_shapes: int | None = None
-
-    def command(self) -> str:
-        modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
-        return (
-            f"catalign calibrate --out {self.out} --views {self.views} --seed {self.seed} "
-            f"{modes}" + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
-        )
 
 
 @dataclass

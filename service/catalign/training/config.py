@@ -1,11 +1,19 @@
-"""Typed training configuration, stored as plain JSON beside every checkpoint."""
+"""Typed configurations of the training commands (features, orientation networks, calibrator),
+stored as plain JSON beside every run; the command line takes its defaults from them."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
+
+from catalign.data.views import PoseMode
+from catalign.paths import DEFAULT_MODEL_DIR
+
+# The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
+CALIBRATION_SEED = 2_000
 
 
 class TrainConfig(BaseModel):
@@ -45,3 +53,83 @@ class TrainConfig(BaseModel):
     @property
     def total_steps(self) -> int:
         return self.stage1_steps + self.stage2_steps
+
+
+class OrientationConfig(BaseModel):
+    """Everything an orientation training run depends on (``catalign train-orientation``)."""
+
+    steps: int = Field(3_000, ge=1)
+    batch_size: int = Field(64, ge=1)
+    learning_rate: float = Field(2e-3, gt=0)
+    width: int = Field(16, ge=1, description="channels of the first conv block")
+    up_width: int | None = Field(
+        None, ge=1, description="the up network's width, when not width (heading's stays)"
+    )
+    up_frame: Literal["view", "principal"] = Field(
+        "view", description="the frame the up network sees a view in"
+    )
+    views_per_shape: int = Field(48, ge=1)
+    procedural: int = Field(60, ge=0, description="procedural chairs added to the shared ones")
+    view_points: int = Field(2_048, ge=16, description="points kept per cached view")
+    min_points: int = Field(300, ge=16, description="fewest points a training sample keeps")
+    so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
+    floor_share: float = Field(0.25, ge=0, le=1, description="upright views with floor kept")
+    fused_share: float = Field(
+        0.0, ge=0, le=1, description="views fused from 2 to 4 cameras, as a reconstruction is"
+    )
+    tilt_deg: float = Field(10.0, ge=0, description="error of the up the heading net is given")
+    label_sigma_deg: float = Field(10.0, gt=0)
+    seed: int = 0
+    threads: int = Field(2, ge=1)
+    out: Path = Path("runs/orientation")
+    init_from: Path | None = Field(None, description="start from another run's weights")
+    networks: Literal["both", "up", "heading"] = Field(
+        "both", description="the networks this run trains; the other keeps init_from's weights"
+    )
+
+    @model_validator(mode="after")
+    def _a_kept_network_comes_from_somewhere(self) -> OrientationConfig:
+        if self.networks != "both" and self.init_from is None:
+            raise ValueError(
+                f"networks={self.networks} trains one network: the other needs init_from"
+            )
+        return self
+
+    def command(self) -> str:
+        """The ``catalign train-orientation`` command line that runs this configuration."""
+        return (
+            f"catalign train-orientation --out {self.out} --steps {self.steps} "
+            f"--batch-size {self.batch_size} --views-per-shape {self.views_per_shape} "
+            f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
+            + ("" if self.init_from is None else f" --init-from {self.init_from}")
+            + _unless_default(self, "learning_rate", f" --learning-rate {self.learning_rate:g}")
+            + _unless_default(self, "up_frame", f" --up-frame {self.up_frame}")
+            + _unless_default(self, "networks", f" --networks {self.networks}")
+            + _unless_default(self, "fused_share", f" --fused-share {self.fused_share:g}")
+            + _unless_default(self, "so3_share", f" --so3-share {self.so3_share:g}")
+            + ("" if self.up_width is None else f" --up-width {self.up_width}")
+        )
+
+
+def _unless_default(config: BaseModel, field: str, option: str) -> str:
+    """``option`` when ``config``'s ``field`` differs from its default, else nothing."""
+    default = type(config).model_fields[field].default
+    return "" if getattr(config, field) == default else option
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """What ``catalign calibrate`` fits on; ``command()`` is the line that reproduces it."""
+
+    out: Path = DEFAULT_MODEL_DIR / "confidence"
+    views: int = 2
+    seed: int = CALIBRATION_SEED
+    pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
+    max_shapes: int | None = None
+
+    def command(self) -> str:
+        modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
+        return (
+            f"catalign calibrate --out {self.out} --views {self.views} --seed {self.seed} "
+            f"{modes}" + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
+        )

@@ -26,11 +26,10 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, Field, model_validator
 from torch import Tensor
 from tqdm import tqdm
 
@@ -52,65 +51,10 @@ from catalign.frames import MODEL_UP
 from catalign.geometry.levelling import leveller, yaw_of, yaw_rotations
 from catalign.geometry.se3 import axis_angle, random_rotation
 from catalign.training.checkpoint import export_weights
+from catalign.training.config import OrientationConfig
 
 # Held-out views are rendered at their own seed, never one the evaluation uses (0, 1).
 HELD_OUT_SEED = 1_000
-
-
-class OrientationConfig(BaseModel):
-    """Everything an orientation training run depends on (``catalign train-orientation``)."""
-
-    steps: int = Field(3_000, ge=1)
-    batch_size: int = Field(64, ge=1)
-    learning_rate: float = Field(2e-3, gt=0)
-    width: int = Field(16, ge=1, description="channels of the first conv block")
-    up_width: int | None = Field(
-        None, ge=1, description="the up network's width, when not width (heading's stays)"
-    )
-    up_frame: Literal["view", "principal"] = Field(
-        "view", description="the frame the up network sees a view in"
-    )
-    views_per_shape: int = Field(48, ge=1)
-    procedural: int = Field(60, ge=0, description="procedural chairs added to the shared ones")
-    view_points: int = Field(2_048, ge=16, description="points kept per cached view")
-    min_points: int = Field(300, ge=16, description="fewest points a training sample keeps")
-    so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
-    floor_share: float = Field(0.25, ge=0, le=1, description="upright views with floor kept")
-    fused_share: float = Field(
-        0.0, ge=0, le=1, description="views fused from 2 to 4 cameras, as a reconstruction is"
-    )
-    tilt_deg: float = Field(10.0, ge=0, description="error of the up the heading net is given")
-    label_sigma_deg: float = Field(10.0, gt=0)
-    seed: int = 0
-    threads: int = Field(2, ge=1)
-    out: Path = Path("runs/orientation")
-    init_from: Path | None = Field(None, description="start from another run's weights")
-    networks: Literal["both", "up", "heading"] = Field(
-        "both", description="the networks this run trains; the other keeps init_from's weights"
-    )
-
-    @model_validator(mode="after")
-    def _a_kept_network_comes_from_somewhere(self) -> OrientationConfig:
-        if self.networks != "both" and self.init_from is None:
-            raise ValueError(
-                f"networks={self.networks} trains one network: the other needs init_from"
-            )
-        return self
-
-    def command(self) -> str:
-        """The ``catalign train-orientation`` command line that runs this configuration."""
-        return (
-            f"catalign train-orientation --out {self.out} --steps {self.steps} "
-            f"--batch-size {self.batch_size} --views-per-shape {self.views_per_shape} "
-            f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
-            + ("" if self.init_from is None else f" --init-from {self.init_from}")
-            + ("" if self.learning_rate == 2e-3 else f" --learning-rate {self.learning_rate:g}")
-            + ("" if self.up_frame == "view" else f" --up-frame {self.up_frame}")
-            + ("" if self.networks == "both" else f" --networks {self.networks}")
-            + ("" if self.fused_share == 0 else f" --fused-share {self.fused_share:g}")
-            + ("" if self.so3_share == 0.5 else f" --so3-share {self.so3_share:g}")
-            + ("" if self.up_width is None else f" --up-width {self.up_width}")
-        )
 
 
 @dataclass(frozen=True)

@@ -104,7 +104,7 @@ class PairSampler:
         self,
         shapes: Mapping[str, Shape],
         neighbours: Mapping[str, Sequence[str]],
-        voxel_size: float = 0.025,
+        voxel_size: float,
         tau: float | None = None,
         tau_ncc: float = 0.04,
         neg_factor: float = 2.0,

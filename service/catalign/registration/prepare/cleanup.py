@@ -150,7 +150,7 @@ def floor_mask(
     points: np.ndarray,
     up: np.ndarray,
     *,
-    voxel: float = 0.025,
+    voxel: float,
     min_spread: float = 0.0,
     min_standing: int = 0,
 ) -> np.ndarray:
@@ -220,7 +220,7 @@ def _floor_remnants(points: np.ndarray, heights: np.ndarray, normal: np.ndarray)
     return remnants
 
 
-def fit_floor(points: np.ndarray, up: np.ndarray, *, voxel: float = 0.025) -> FloorFit | None:
+def fit_floor(points: np.ndarray, up: np.ndarray, *, voxel: float) -> FloorFit | None:
     """The lowest near-horizontal plane of the cloud and whether it is a floor (None when the
     cloud is too small to hold one); :func:`floor_mask` is what most callers want."""
     pts = _as_cloud(points)
