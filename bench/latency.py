@@ -29,11 +29,13 @@ import numpy as np
 import torch
 from _report import load_average, publish
 
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import WORLD_UP, camera_at, random_object_pose, render_view
+from catalign.data.views import WORLD_UP, random_object_pose, render_view
 from catalign.features.extractor import LearnedExtractor
 from catalign.geometry.sampling import subsample
-from catalign.library.index import build_procedural, load
+from catalign.library.index import build_procedural
+from catalign.library.loaded import load
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import STAGES, Engine
 from catalign.registration.methods import build_registrar

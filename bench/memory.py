@@ -36,7 +36,8 @@ from _report import load_average, publish
 from serve import MODEL_DIR, REQUEST_TIMEOUT_S, UP, ServerProcess, query_cloud
 
 from catalign.features.extractor import LearnedExtractor
-from catalign.library.index import build_procedural, load
+from catalign.library.index import build_procedural
+from catalign.library.loaded import load
 from catalign.registration.config import EngineConfig
 from catalign_client import Client
 

@@ -30,7 +30,7 @@ from catalign.data.shapes import default_chairs_root
 from catalign.features.extractor import LearnedExtractor
 from catalign.frames import MODEL_UP
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.library.index import Library, load
+from catalign.library.loaded import Library, load
 from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine

@@ -79,8 +79,9 @@ import numpy as np
 from _report import load_average, publish
 
 from catalign.api import catalign_pb2, catalign_pb2_grpc
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, random_object_pose, render_view
+from catalign.data.views import random_object_pose, render_view
 from catalign.geometry.sampling import subsample
 from catalign_client import Client
 
@@ -293,7 +294,7 @@ def engine_direct(
     if runs <= 0:
         return {}
     from catalign.features.extractor import LearnedExtractor
-    from catalign.library.index import load
+    from catalign.library.loaded import load
     from catalign.registration.config import EngineConfig
     from catalign.registration.engine import Engine
     from catalign.threads import limit_threads

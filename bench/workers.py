@@ -39,7 +39,8 @@ from latency import query_cloud
 
 from catalign.data.views import WORLD_UP
 from catalign.features.extractor import LearnedExtractor
-from catalign.library.index import build_procedural, load
+from catalign.library.index import build_procedural
+from catalign.library.loaded import load
 from catalign.registration.engine import Engine
 from catalign.threads import cores, limit_malloc_arenas, limit_threads
 

@@ -72,7 +72,7 @@ def box_chair() -> Shape:
 def panel_with_a_leg() -> np.ndarray:
     """A flat 0.6 x 0.5 m panel in z = 0 (a backrest seen face on, 2 mm noise) with 0.4 % of
     the points on a thin leg reaching 0.4 m under it: all plane but for the leg, so a floor by
-    every rule of :func:`~catalign.registration.prepare.cleanup.floor_mask` under +Z."""
+    every rule of :func:`~catalign.registration.prepare.floor.floor_mask` under +Z."""
     rng = np.random.default_rng(0)
     panel = np.column_stack(
         [rng.uniform(-0.3, 0.3, 9960), rng.uniform(-0.25, 0.25, 9960), rng.normal(0, 0.002, 9960)]

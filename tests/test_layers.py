@@ -1,4 +1,5 @@
-"""No module imports from a higher layer, the layers as docs/architecture.md lists them.
+"""No module imports from a higher layer, the layers as docs/architecture.md lists them; no module
+is over 400 lines and the engine's orchestrator over 250.
 
 The table under "## Layers" in docs/architecture.md is the one source: each row names a layer's
 number and its packages; a package's ``cli`` module belongs to the command line's layer. Every
@@ -102,3 +103,16 @@ def test_the_check_finds_an_upward_import(source: str, module: str, upward: bool
     table = layers()
     mine = layer_of(module, table)
     assert any(layer_of(i, table) > mine for i in imports_of(source, module)) is upward
+
+
+def test_modules_stay_short_and_the_engine_reads_like_the_algorithm() -> None:
+    """No module of the package over 400 lines; the ``Engine`` class at most 250."""
+    long = {
+        str(path.relative_to(PACKAGE)): lines
+        for path in PACKAGE.rglob("*.py")
+        if (lines := len(path.read_text().splitlines())) > 400
+    }
+    assert long == {}
+    tree = ast.parse((PACKAGE / "registration" / "engine.py").read_text())
+    (engine,) = [n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Engine"]
+    assert engine.end_lineno - engine.lineno + 1 <= 250

@@ -6,23 +6,20 @@ is a bug and keeps its traceback.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from catalign.cli_support import EngineOptions, exit_on_error, options_to
+from catalign.cli_support import EngineOptions, exit_on_error
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
-from catalign.training.config import CalibrationConfig, OrientationConfig, TrainConfig
+from catalign.training.cli import calibrate, neighbours, train, train_orientation
 
 if TYPE_CHECKING:
     from catalign.registration.config import EngineConfig
 
-# Training commands' defaults are their configurations' (one source for each value).
-TRAIN, ORIENTATION, CALIBRATION = TrainConfig(), OrientationConfig(), CalibrationConfig()
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 app.add_typer(library_app, name="library")
 
@@ -141,238 +138,11 @@ def evaluate(
     typer.echo(f"\nreport written to {path}")
 
 
-@app.command()
-def neighbours(
-    k: Annotated[int, typer.Option(min=1, help="Neighbours per shape.")] = 3,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-) -> None:
-    """Print each shared chair's nearest training chairs by EMD in NCC (cached on disk)."""
-    from catalign.data.neighbours import shape_neighbours
-    from catalign.data.shapes import SharedChairs
-
-    with exit_on_error():
-        chairs = SharedChairs(chairs_dir)
-        shapes = {i: chairs.load(i).points for i in chairs.ids()}
-    result = shape_neighbours(shapes, chairs.ids("train"), k=k)
-    for shape_id, near in result.items():
-        typer.echo(f"{shape_id}: " + ", ".join(f"{n} ({d:.4f})" for n, d in near))
-
-
-@app.command()
-def train(
-    out: Annotated[
-        Path, typer.Option(help="Run folder: state, CSV log, final weights.")
-    ] = TRAIN.out,
-    model: Annotated[str, typer.Option(help="ResUNetBN2C or ResUNetSmall.")] = TRAIN.model,
-    curriculum: Annotated[
-        str, typer.Option(help="ncc (the paper's) or same-only (the FCGF ablation).")
-    ] = TRAIN.curriculum,
-    loss: Annotated[
-        str, typer.Option(help="hardest (FCGF) or contrastive (random negatives).")
-    ] = TRAIN.loss,
-    stage1_steps: Annotated[
-        int, typer.Option(min=0, help="Same-instance steps.")
-    ] = TRAIN.stage1_steps,
-    stage2_steps: Annotated[
-        int, typer.Option(min=0, help="Curriculum stage-2 steps.")
-    ] = TRAIN.stage2_steps,
-    batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = TRAIN.batch_size,
-    voxel_size: Annotated[
-        float, typer.Option(help="Voxel size in metres (recorded in the model card).")
-    ] = TRAIN.voxel_size,
-    rotation: Annotated[
-        str,
-        typer.Option(
-            help="Augmentation: upright (any yaw), yaw-bin (+-22.5 deg, 8 query headings), "
-            "yaw-quarter (+-45 deg, 4 headings) or so3."
-        ),
-    ] = TRAIN.rotation,
-    procedural: Annotated[
-        int, typer.Option(min=0, help="Procedural chairs to add.")
-    ] = TRAIN.procedural,
-    view_so3_share: Annotated[
-        float,
-        typer.Option(
-            min=0, max=1, help="Share of views of the chair in any rotation (from below)."
-        ),
-    ] = TRAIN.view_so3_share,
-    learning_rate: Annotated[float, typer.Option(help="Adam learning rate.")] = TRAIN.learning_rate,
-    seed: Annotated[int, typer.Option(help="Seed of pairs and initial weights.")] = TRAIN.seed,
-    validate_every: Annotated[
-        int, typer.Option(min=1, help="Steps between validations.")
-    ] = TRAIN.validate_every,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = TRAIN.threads,
-    init_from: Annotated[
-        Path | None, typer.Option(help="Start from another run's weights (a shared stage 1).")
-    ] = TRAIN.init_from,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-) -> None:
-    """Train the feature extractor; an interrupted run continues from its last checkpoint."""
-    from catalign.data.shapes import SharedChairs
-    from catalign.training.loop import train as run_training
-    from catalign.training.loop import training_shapes
-
-    config = options_to(
-        TrainConfig,
-        out=out,
-        model=model,
-        curriculum=curriculum,
-        loss=loss,
-        stage1_steps=stage1_steps,
-        stage2_steps=stage2_steps,
-        batch_size=batch_size,
-        voxel_size=voxel_size,
-        procedural=procedural,
-        rotation=rotation,
-        view_so3_share=view_so3_share,
-        learning_rate=learning_rate,
-        seed=seed,
-        validate_every=validate_every,
-        init_from=init_from,
-        threads=threads,
-    )
-    with exit_on_error():
-        shapes, val_ids = training_shapes(config, SharedChairs(chairs_dir))
-        card = run_training(config, shapes, val_ids)
-    typer.echo(json.dumps(card["validation"], indent=2))
-    typer.echo(f"model written to {out}")
-
-
-@app.command("train-orientation")
-def train_orientation(
-    out: Annotated[
-        Path, typer.Option(help="Run folder: cached views, weights and card.")
-    ] = ORIENTATION.out,
-    steps: Annotated[int, typer.Option(min=1, help="Optimizer steps.")] = ORIENTATION.steps,
-    batch_size: Annotated[
-        int, typer.Option(min=1, help="Views per step.")
-    ] = ORIENTATION.batch_size,
-    views_per_shape: Annotated[
-        int, typer.Option(min=1, help="Views rendered per shape.")
-    ] = ORIENTATION.views_per_shape,
-    procedural: Annotated[
-        int, typer.Option(min=0, help="Procedural chairs to add.")
-    ] = ORIENTATION.procedural,
-    seed: Annotated[
-        int, typer.Option(help="Seed of views, samples and initial weights.")
-    ] = ORIENTATION.seed,
-    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = ORIENTATION.threads,
-    learning_rate: Annotated[
-        float, typer.Option(help="Peak learning rate.")
-    ] = ORIENTATION.learning_rate,
-    up_frame: Annotated[
-        str, typer.Option(help="Frame the up network sees a view in: view or principal.")
-    ] = ORIENTATION.up_frame,
-    init_from: Annotated[
-        Path | None, typer.Option(help="Start from another run's weights (a longer schedule).")
-    ] = ORIENTATION.init_from,
-    networks: Annotated[
-        str,
-        typer.Option(
-            help="Networks to train: both, up or heading (the other keeps --init-from's weights)."
-        ),
-    ] = ORIENTATION.networks,
-    fused_share: Annotated[
-        float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
-    ] = ORIENTATION.fused_share,
-    so3_share: Annotated[
-        float, typer.Option(help="Share of views rendered in any rotation (the rest upright).")
-    ] = ORIENTATION.so3_share,
-    up_width: Annotated[
-        int | None,
-        typer.Option(
-            min=1, help="Up network width, if not 16 (afresh where --init-from's has another)."
-        ),
-    ] = ORIENTATION.up_width,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-) -> None:
-    """Train the orientation proposal networks (up and heading) on views of training chairs."""
-    from catalign.data.shapes import SharedChairs
-    from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
-    from catalign.training.orientation import run
-
-    config = options_to(
-        OrientationConfig,
-        out=out,
-        steps=steps,
-        batch_size=batch_size,
-        views_per_shape=views_per_shape,
-        procedural=procedural,
-        seed=seed,
-        threads=threads,
-        learning_rate=learning_rate,
-        up_frame=up_frame,
-        init_from=init_from,
-        networks=networks,
-        fused_share=fused_share,
-        so3_share=so3_share,
-        up_width=up_width,
-    )
-    with exit_on_error():
-        card = run(config, SharedChairs(chairs_dir))
-    typer.echo(json.dumps(card["held_out_accuracy"], indent=2))
-    typer.echo(
-        f"orientation model written to {out} (ship it: copy its {WEIGHTS_FILE} and "
-        f"{CARD_FILE} to model_store/orientation/)"
-    )
-
-
-@app.command()
-def calibrate(
-    out: Annotated[
-        Path, typer.Option(help="Folder of the calibrator (ships in model_store/).")
-    ] = CALIBRATION.out,
-    views: Annotated[
-        int, typer.Option(min=1, help="Views per training chair and mode.")
-    ] = CALIBRATION.views,
-    seed: Annotated[int, typer.Option(help="Seed of the views and of RANSAC.")] = CALIBRATION.seed,
-    pose_mode: Annotated[
-        list[str] | None,
-        typer.Option(help="upright (up given) and/or so3 (no up); repeat; both if unset."),
-    ] = None,
-    max_shapes: Annotated[
-        int | None, typer.Option(min=2, help="Cap on training chairs (quick runs).")
-    ] = None,
-    model_dir: Annotated[
-        Path | None,
-        typer.Option(help="Weights whose answers are calibrated (default: model_store/)."),
-    ] = None,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-    samples: Annotated[
-        Path | None,
-        typer.Option(help="Refit from a run's samples.npz instead of registering views again."),
-    ] = None,
-) -> None:
-    """Fit the answers' confidence (boosted trees) on views of the training chairs."""
-    from catalign.data.shapes import SharedChairs
-    from catalign.features.extractor import LearnedExtractor
-    from catalign.training.calibration import run
-
-    modes = tuple(pose_mode or ("upright", "so3"))
-    with exit_on_error():
-        for mode in modes:
-            if mode not in ("upright", "so3"):
-                raise ConfigError(f"unknown pose mode {mode!r}; use upright or so3")
-        config = CalibrationConfig(
-            out=out,
-            views=views,
-            seed=seed,
-            pose_modes=modes,
-            max_shapes=max_shapes,  # type: ignore[arg-type]
-        )
-        # A refit from saved samples needs no weights (nor their current calibrator).
-        extractor = None if samples is not None else LearnedExtractor(model_dir)
-        calibrator = run(config, SharedChairs(chairs_dir), extractor, samples_file=samples)
-    typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
-    typer.echo(f"calibrator written to {out}")
+# The training commands live beside the training code (catalign.training.cli).
+app.command()(neighbours)
+app.command()(train)
+app.command("train-orientation")(train_orientation)
+app.command()(calibrate)
 
 
 @app.command()

@@ -28,8 +28,9 @@ import uvicorn
 
 from catalign.api.app import create_app
 from catalign.api.settings import ServiceSettings
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR
 from catalign.geometry.se3 import make_pose
 

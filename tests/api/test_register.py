@@ -186,8 +186,9 @@ def test_the_answer_reports_the_up_it_used_and_the_floor_it_set_aside(
     """A view with a ring of floor: with ``up`` the answer echoes it (unit length, not
     estimated) and counts the floor in ``points_set_aside``; without ``up`` it reports an
     estimated up near the true one (the floor's normal)."""
+    from catalign.data.camera import camera_at
     from catalign.data.shapes import procedural_shape
-    from catalign.data.views import Floor, camera_at, render_view
+    from catalign.data.views import Floor, render_view
 
     view = views(seed=2, yaw=2.5)
     shape = procedural_shape(2)

@@ -4,25 +4,27 @@ import numpy as np
 import pytest
 import trimesh
 
+from catalign.data.camera import (
+    Camera,
+    DepthNoise,
+    add_depth_noise,
+    camera_at,
+    fixed_viewpoints,
+    random_camera,
+    render_mesh_view,
+    visible_point_view,
+)
 from catalign.data.shapes import Shape, procedural_shape
 from catalign.data.views import (
     MODEL_TO_WORLD_UP,
-    Camera,
-    DepthNoise,
     Floor,
     Table,
-    add_depth_noise,
-    camera_at,
     disc_points,
-    fixed_viewpoints,
-    random_camera,
     random_object_pose,
-    render_mesh_view,
     render_view,
     surface_density,
     under_table,
     upright_rotation,
-    visible_point_view,
 )
 from catalign.geometry.se3 import axis_angle, make_pose, transform
 

@@ -27,8 +27,9 @@ import pytest
 import trimesh
 
 import catalign_client as sdk
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.geometry.se3 import make_pose, rotation_error_deg
 
 ROOT = Path(__file__).resolve().parents[2]

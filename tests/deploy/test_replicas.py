@@ -23,8 +23,9 @@ import pytest
 import trimesh
 
 import catalign_client as sdk
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import make_pose
 from catalign.library.index import add, build_procedural

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import catalign.library.index as index
+import catalign.library.loaded as loaded
 import catalign.library.store as store
 from catalign.errors import LibraryCorruptError, LibraryError, LibraryMismatchError
 from catalign.library import add, build, info, load, remove
@@ -194,7 +195,7 @@ def test_a_missing_entry_file_is_named(small_library, extractor):
 def _write_while_reading(monkeypatch, model_id, before_read, after_read=lambda: None):
     """Make a writer run ``before_read`` just before a reader reads ``model_id``'s file (the
     reader holds the manifest it read first) and ``after_read`` right after that read."""
-    real_read = index.read_entry
+    real_read = loaded.read_entry
 
     def racing_read(library_dir, wanted, record):
         if wanted != model_id or racing_read.done:
@@ -207,7 +208,7 @@ def _write_while_reading(monkeypatch, model_id, before_read, after_read=lambda: 
             after_read()
 
     racing_read.done = False
-    monkeypatch.setattr(index, "read_entry", racing_read)
+    monkeypatch.setattr(loaded, "read_entry", racing_read)
 
 
 def test_a_reader_loads_the_new_manifest_when_a_writer_deleted_an_entry_under_it(

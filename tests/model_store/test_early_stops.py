@@ -12,14 +12,15 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.features.orientation import OrientationProposer, Proposal
 from catalign.frames import MODEL_UP
 from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
-from catalign.library.index import load
+from catalign.library.loaded import load
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.registration.prepare.frame import query_frame

@@ -14,11 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from catalign.data.camera import Camera
 from catalign.data.shapes import SharedChairs, to_metric
-from catalign.data.views import Camera, render_view
+from catalign.data.views import render_view
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg
-from catalign.library.index import build, load
+from catalign.library.index import build
+from catalign.library.loaded import load
 from catalign.registration.engine import Engine
 from catalign.registration.prepare.orient import orient
 

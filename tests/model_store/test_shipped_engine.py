@@ -7,11 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import make_pose, random_rotation, rotation_error_deg
-from catalign.library.index import load
+from catalign.library.loaded import load
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 

@@ -12,11 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from catalign.data.camera import camera_at
 from catalign.data.shapes import Shape, procedural_shape
-from catalign.data.views import camera_at, render_view, upright_rotation
+from catalign.data.views import render_view, upright_rotation
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
 from catalign.geometry.se3 import make_pose, rotation_error_deg
-from catalign.library.index import build, load
+from catalign.library.index import build
+from catalign.library.loaded import load
 from catalign.registration.decision.confidence import find_calibrator
 from catalign.registration.engine import Engine
 

@@ -10,7 +10,7 @@ import pytest
 
 from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, DistanceGrid
 from catalign.library.entry import LibraryEntry
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.library.retrieval import global_descriptor
 from catalign.library.store import Manifest
 
@@ -50,7 +50,7 @@ def entry(
 
 
 def library_of(*entries: LibraryEntry, voxel_size: float = 0.03) -> Library:
-    """A loaded library holding ``entries``, as :func:`catalign.library.index.load` gives it."""
+    """A loaded library holding ``entries``, as :func:`catalign.library.loaded.load` gives it."""
     manifest = Manifest(fingerprint="test", voxel_size=voxel_size, created="", updated="")
     return Library(Path("/nonexistent/test-library"), manifest, entries)
 

@@ -6,16 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.camera import add_depth_noise, random_camera, render_mesh_view
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import (
-    add_depth_noise,
-    random_camera,
-    random_object_pose,
-    render_mesh_view,
-)
+from catalign.data.views import random_object_pose
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, transform
-from catalign.registration.prepare.cleanup import detached_mask, fit_floor, floor_mask
+from catalign.registration.prepare.detached import detached_mask
+from catalign.registration.prepare.floor import fit_floor, floor_mask
 from catalign.registration.prepare.orient import GUESSED_FLOOR_SPREAD
 
 UP = np.array([0.0, 0.0, 1.0])

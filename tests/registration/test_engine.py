@@ -13,7 +13,8 @@ from catalign.errors import DeadlineExceededError, DegenerateInputError, Invalid
 from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.levelling import leveller
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.library.index import Library, build, load
+from catalign.library.index import build
+from catalign.library.loaded import Library, load
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import STAGES, Engine
 from catalign.registration.stages.describe import QueryView

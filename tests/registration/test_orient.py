@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.camera import camera_at
 from catalign.data.shapes import Shape
-from catalign.data.views import Floor, camera_at, render_view, upright_rotation
+from catalign.data.views import Floor, render_view, upright_rotation
 from catalign.features.orientation import Proposal
 from catalign.geometry.se3 import axis_angle, make_pose
-from catalign.registration.prepare.cleanup import floor_mask
+from catalign.registration.prepare.floor import floor_mask
 from catalign.registration.prepare.orient import Oriented, orient, snap_to_plane
 from catalign.registration.results import Orientation
 from catalign.registration.stages.describe import even_headings, rotations_of

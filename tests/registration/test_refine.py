@@ -187,8 +187,9 @@ def test_the_engines_icp_converges_from_10_degrees_and_5_cm_off(
     start turned 10 degrees about a random axis through the chair and shifted 5 cm: the
     engine's ICP (its distance and points) ends within 1 degree and 5 mm of where it ends from
     the true pose, which the sensor's noise leaves within 2 degrees and 1 cm of the truth."""
+    from catalign.data.camera import camera_at
     from catalign.data.shapes import procedural_shape
-    from catalign.data.views import camera_at, render_view
+    from catalign.data.views import render_view
     from catalign.registration.config import EngineConfig
 
     chair = procedural_shape(seed)

@@ -3,8 +3,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.camera import random_camera
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import random_camera, random_object_pose, render_view
+from catalign.data.views import random_object_pose, render_view
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation

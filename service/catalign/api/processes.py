@@ -44,7 +44,7 @@ from catalign.registration.config import served_config
 if TYPE_CHECKING:
     from catalign.api.settings import ServiceSettings
     from catalign.features.extractor import FeatureExtractor
-    from catalign.library.index import Library
+    from catalign.library.loaded import Library
     from catalign.registration.engine import Engine
     from catalign.registration.results import RegistrationResult
 
@@ -179,7 +179,7 @@ def serve(
     """A worker process: load, warm up, say ready, then register each job until told to stop
     (None) or until the server's end of the pipe closes."""
     from catalign.features.extractor import LearnedExtractor
-    from catalign.library.index import load
+    from catalign.library.loaded import load
     from catalign.threads import limit_malloc_arenas, limit_threads
 
     try:

@@ -47,7 +47,7 @@ from catalign.threads import limit_threads
 if TYPE_CHECKING:
     from catalign.features.extractor import LearnedExtractor
     from catalign.library.entry import LibraryEntry
-    from catalign.library.index import Library
+    from catalign.library.loaded import Library
     from catalign.registration.engine import Engine
     from catalign.registration.results import RegistrationResult
 
@@ -296,7 +296,7 @@ class RegistrationService:
 
     def _load(self) -> None:
         from catalign.features.extractor import LearnedExtractor
-        from catalign.library.index import load
+        from catalign.library.loaded import load
 
         started = time.perf_counter()
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
@@ -313,7 +313,7 @@ class RegistrationService:
         )
 
     def _reload(self, extractor: LearnedExtractor) -> Library:
-        from catalign.library.index import load
+        from catalign.library.loaded import load
 
         return load(self.settings.library, extractor.fingerprint)
 
@@ -357,7 +357,8 @@ class RegistrationService:
     def _add(
         self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str
     ) -> Library:
-        from catalign.library.index import add, load
+        from catalign.library.index import add
+        from catalign.library.loaded import load
 
         # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
@@ -376,7 +377,8 @@ class RegistrationService:
         return load(self.settings.library, extractor.fingerprint)
 
     def _remove(self, extractor: LearnedExtractor, model_id: str) -> Library:
-        from catalign.library.index import load, remove
+        from catalign.library.index import remove
+        from catalign.library.loaded import load
 
         remove(self.settings.library, [model_id])
         logger.info("removed model %s from %s", model_id, self.settings.library)

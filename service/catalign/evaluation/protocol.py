@@ -33,15 +33,9 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
+from catalign.data.camera import random_camera
 from catalign.data.shapes import Shape, SharedChairs, to_metric
-from catalign.data.views import (
-    Floor,
-    PoseMode,
-    random_camera,
-    random_object_pose,
-    render_view,
-    under_table,
-)
+from catalign.data.views import Floor, PoseMode, random_object_pose, render_view, under_table
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame

@@ -11,16 +11,8 @@ registering a query against. Coordinates are stored in metres: a library built w
 """
 
 from catalign.library.entry import SURFACE_POINTS, LibraryEntry
-from catalign.library.index import (
-    Library,
-    add,
-    build,
-    build_procedural,
-    info,
-    list_models,
-    load,
-    remove,
-)
+from catalign.library.index import add, build, build_procedural, info, list_models, remove
+from catalign.library.loaded import Library, load
 from catalign.library.retrieval import global_descriptor, retrieval_scores, shortlist
 from catalign.library.sources import MODEL_ID_PATTERN, UNIT_FACTORS, validate_model_id
 from catalign.library.store import FORMAT_VERSION, EntryRecord, Manifest

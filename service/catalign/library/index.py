@@ -16,21 +16,18 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from tqdm import tqdm
 
 from catalign.data.shapes import procedural_id
 from catalign.errors import (
     InvalidInputError,
-    LibraryCorruptError,
     LibraryError,
-    LibraryMismatchError,
     ModelNotFoundError,
 )
 from catalign.library.entry import (
@@ -39,6 +36,7 @@ from catalign.library.entry import (
     describe_file,
     describe_procedural,
 )
+from catalign.library.loaded import check_fingerprint
 from catalign.library.sources import collect_sources, unit_factor
 from catalign.library.store import (
     EntryRecord,
@@ -46,10 +44,7 @@ from catalign.library.store import (
     clean_unreferenced,
     commit,
     has_manifest,
-    read_entry,
     read_manifest,
-    read_manifest_bytes,
-    rebuild_hint,
     utc_now,
     write_entry,
     writer_lock,
@@ -59,58 +54,6 @@ if TYPE_CHECKING:  # the extractor module imports torch; the index only needs it
     from catalign.features.extractor import FeatureExtractor
 
 logger = logging.getLogger(__name__)
-
-_LOAD_ATTEMPTS = 5  # a writer may replace the manifest while a reader reads the entries
-
-
-class Library:
-    """A loaded library: every entry in memory, plus stacked arrays for shortlisting.
-
-    Example::
-
-        library = load("model_store/library", extractor.fingerprint)
-        ids = shortlist(library, global_descriptor(query.features), np.ptp(points, axis=0), k=5)
-        model = library[ids[0]]  # LibraryEntry: points, keypoints, features, ...
-
-    ``ids`` are sorted; ``descriptors`` (E,K) float32 and ``sizes`` (E,3) float64 follow them.
-    """
-
-    def __init__(self, path: Path, manifest: Manifest, entries: Sequence[LibraryEntry]) -> None:
-        self.path = path
-        self.manifest = manifest
-        self.fingerprint = manifest.fingerprint
-        self.voxel_size = manifest.voxel_size
-        ordered = sorted(entries, key=lambda e: e.model_id)
-        self.ids: list[str] = [e.model_id for e in ordered]
-        self._entries = {e.model_id: e for e in ordered}
-        width = ordered[0].descriptor.shape[0] if ordered else 0
-        self.descriptors = np.zeros((len(ordered), width), dtype=np.float32)
-        self.sizes = np.zeros((len(ordered), 3), dtype=np.float64)
-        for row, entry in enumerate(ordered):
-            self.descriptors[row] = entry.descriptor
-            self.sizes[row] = entry.size
-        self.descriptors.flags.writeable = False
-        self.sizes.flags.writeable = False
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def __contains__(self, model_id: object) -> bool:
-        return model_id in self._entries
-
-    def __getitem__(self, model_id: str) -> LibraryEntry:
-        try:
-            return self._entries[model_id]
-        except KeyError:
-            raise ModelNotFoundError(
-                f"no model {model_id!r} in the library at {self.path} ({len(self)} models)"
-            ) from None
-
-    def __iter__(self) -> Iterator[LibraryEntry]:
-        return iter(self._entries.values())
-
-    def __repr__(self) -> str:
-        return f"Library({str(self.path)!r}, {len(self)} models, extractor {self.fingerprint!r})"
 
 
 @dataclass(frozen=True)
@@ -235,27 +178,6 @@ def remove(library_dir: str | Path, ids: Sequence[str]) -> Manifest:
     return manifest
 
 
-def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
-    """Load and verify a library for an extractor (``None`` skips the fingerprint check).
-
-    Raises LibraryError if there is no library, LibraryCorruptError for a bad manifest, an
-    unknown format version or an entry that fails its checks, LibraryMismatchError if it was
-    built with another extractor.
-    """
-    library_dir = Path(library_dir)
-    for _ in range(_LOAD_ATTEMPTS):
-        raw = read_manifest_bytes(library_dir)
-        manifest = Manifest.from_bytes(raw, library_dir)
-        if extractor_fingerprint is not None:
-            _check_fingerprint(manifest, extractor_fingerprint, library_dir)
-        entries = _read_entries(library_dir, manifest, raw)
-        if entries is not None:
-            _check_descriptors(library_dir, entries)
-            logger.info("loaded library %s: %d models", library_dir, len(entries))
-            return Library(library_dir, manifest, entries)
-    raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
-
-
 def configure(
     library_dir: str | Path,
     options: Mapping[str, Any],
@@ -313,7 +235,7 @@ def _write(
             created, engine = now, {}
         else:
             current = read_manifest(library_dir)
-            _check_fingerprint(current, extractor.fingerprint, library_dir)
+            check_fingerprint(current, extractor.fingerprint, library_dir)
             _check_new_ids(current, jobs, replace, library_dir)
             records = dict(current.entries)
             created, engine = current.created, current.engine
@@ -346,15 +268,6 @@ def _write(
     return manifest
 
 
-def _check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
-    if manifest.fingerprint != fingerprint:
-        raise LibraryMismatchError(
-            f"the library at {library_dir} was built with feature extractor "
-            f"{manifest.fingerprint!r}, but this one is {fingerprint!r}, so their features are "
-            f"not comparable; {rebuild_hint(library_dir)} (with the current extractor)"
-        )
-
-
 def _check_new_ids(
     manifest: Manifest, jobs: Sequence[_Job], replace: bool, library_dir: Path
 ) -> None:
@@ -367,44 +280,6 @@ def _check_new_ids(
                 f"{library_dir} (from {manifest.entries[job.model_id].source}); "
                 "pass replace=True (--replace) to replace it, or give it another id"
             )
-
-
-def _read_entries(library_dir: Path, manifest: Manifest, raw: bytes) -> list[LibraryEntry] | None:
-    """Every entry of ``manifest``; None if a file vanished because a writer replaced it.
-
-    A missing file is corruption only while the manifest that names it is still current and the
-    file is still missing: a writer that removed the entry and added it back within the same
-    second wrote a manifest with the very same bytes, and the file exists again.
-    """
-    entries = []
-    for model_id in manifest.ids:
-        record = manifest.entries[model_id]
-        try:
-            entries.append(read_entry(library_dir, model_id, record))
-        except FileNotFoundError:
-            if _manifest_changed(library_dir, raw) or (library_dir / record.file).is_file():
-                return None
-            raise LibraryCorruptError(
-                f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
-                f"remove the entry or {rebuild_hint(library_dir)}"
-            ) from None
-    return entries
-
-
-def _manifest_changed(library_dir: Path, raw: bytes) -> bool:
-    try:
-        return read_manifest_bytes(library_dir) != raw
-    except LibraryError:
-        return True
-
-
-def _check_descriptors(library_dir: Path, entries: Sequence[LibraryEntry]) -> None:
-    widths = {e.descriptor.shape[0] for e in entries}
-    if len(widths) > 1:
-        raise LibraryCorruptError(
-            f"the entries of {library_dir} have descriptors of different lengths "
-            f"({sorted(widths)}); {rebuild_hint(library_dir)}"
-        )
 
 
 def _clean_after_failure(library_dir: Path, written: set[str]) -> None:

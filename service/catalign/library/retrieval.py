@@ -16,7 +16,7 @@ import numpy as np
 from catalign.errors import DegenerateInputError, InvalidInputError
 
 if TYPE_CHECKING:
-    from catalign.library.index import Library
+    from catalign.library.loaded import Library
 
 SIZE_TOLERANCE = 0.15  # noise and stray points may stretch a view this much past the model
 SIZE_PENALTY = 2.0  # score lost per unit of relative excess beyond the tolerance

@@ -9,8 +9,8 @@ answer's ``timings_ms`` documents:
    and from which the answer is moved back;
 2. **orient** (:mod:`~catalign.registration.prepare.orient`): the ways up the query may stand (the
    given ``up``, or the proposed ones), the floor under it and the headings each is described
-   at; the floor, then small clusters detached from the object
-   (:mod:`~catalign.registration.prepare.cleanup`), are set aside;
+   at; the floor (:mod:`~catalign.registration.prepare.floor`), then small clusters detached
+   from the object (:mod:`~catalign.registration.prepare.detached`), are set aside;
 3. a **search round** (:meth:`Engine._round`), over the confident headings of the confident
    ups first:
 
@@ -52,12 +52,12 @@ import numpy as np
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.config import EngineConfig, from_config
 from catalign.registration.decision.confidence import Calibrator, find_calibrator
 from catalign.registration.decision.finish import Finisher
 from catalign.registration.decision.rules import Decision, Found, Refined, Rules, decide
-from catalign.registration.prepare.cleanup import detached_mask
+from catalign.registration.prepare.detached import detached_mask
 from catalign.registration.prepare.orient import Oriented, orient
 from catalign.registration.prepare.validation import (
     MAX_RECEIVED_VOXELS,
@@ -115,9 +115,8 @@ class Engine:
 
     ``config`` holds every option (:class:`EngineConfig`, its defaults when not given);
     ``calibrator`` reads each answer's confidence (by default the one beside the extractor's
-    weights, if any; None: answers carry none);
-    ``headings`` (the config's, else the extractor's), ``ransac_distance`` and ``icp_distance``
-    (metres) are what the engine made of it.
+    weights; None: none); ``headings`` (the config's, else the extractor's), ``ransac_distance``
+    and ``icp_distance`` (metres) are what the engine made of it.
     """
 
     def __init__(
@@ -129,9 +128,6 @@ class Engine:
         calibrator: Calibrator | FromWeights | None = FROM_WEIGHTS,
     ) -> None:
         config = EngineConfig() if config is None else config
-        if isinstance(calibrator, FromWeights):
-            weights = extractor.model_dir
-            calibrator = None if weights is None else find_calibrator(weights)
         voxel = extractor.voxel_size
         self.extractor, self.library, self.config = extractor, library, config
         self.headings = extractor.headings if config.headings is None else config.headings
@@ -160,7 +156,7 @@ class Engine:
             fitter,
             icp_distance=self.icp_distance,
             exact_fitness=config.exact_fitness,
-            calibrator=calibrator,
+            calibrator=_weights_calibrator(extractor, calibrator),
         )
 
     def register(
@@ -283,16 +279,12 @@ class Engine:
         return not self._fits_exactly(decision) and self._weak(decision)
 
     def _fits_exactly(self, decision: Decision | None) -> bool:
-        """Whether the winner fits the query as only the observed instance itself does."""
-        return decision is not None and decision.winner.fit.fitness >= self.rules.exact_fitness
+        return decision is not None and decision.fits_exactly(self.rules.exact_fitness)
 
     def _weak(self, decision: Decision | None) -> bool:
         """Whether an answer (or none) is too unsure to keep without searching the other
-        proposed headings and ups (``heading_fallback``; always, without a calibrator)."""
-        if decision is None:
-            return True
-        confidence = decision.winner.confidence
-        return confidence is None or confidence < self.config.heading_fallback
+        proposed headings and ups (``heading_fallback``)."""
+        return decision is None or decision.weak(self.config.heading_fallback)
 
     def _described(
         self, cloud: CheckedCloud, orientations: list[Orientation], request: Request
@@ -361,3 +353,12 @@ class Engine:
 
         done = request.cache.refined_pose(item.scored.hypothesis, refine)
         return Refined(item, done.scored, done.parts, done.fit)
+
+
+def _weights_calibrator(
+    extractor: FeatureExtractor, calibrator: Calibrator | FromWeights | None
+) -> Calibrator | None:
+    """``calibrator``, or the one in the extractor's weights folder (None without one)."""
+    if not isinstance(calibrator, FromWeights):
+        return calibrator
+    return None if extractor.model_dir is None else find_calibrator(extractor.model_dir)

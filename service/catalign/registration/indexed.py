@@ -16,7 +16,8 @@ import numpy as np
 import trimesh
 
 from catalign.features.extractor import FeatureExtractor
-from catalign.library.index import build, load
+from catalign.library.index import build
+from catalign.library.loaded import load
 from catalign.registration.config import EngineConfig
 from catalign.registration.decision.confidence import Calibrator
 from catalign.registration.engine import FROM_WEIGHTS, Engine, FromWeights

@@ -33,8 +33,9 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from catalign.data.camera import random_camera
 from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
-from catalign.data.views import Floor, random_camera, random_object_pose, render_view
+from catalign.data.views import Floor, random_object_pose, render_view
 from catalign.errors import ConfigError
 from catalign.features.orientation import (
     CARD_FILE,

@@ -24,8 +24,9 @@ from typing import Literal
 import numpy as np
 from scipy.spatial import cKDTree
 
+from catalign.data.camera import random_camera
 from catalign.data.shapes import Shape
-from catalign.data.views import random_camera, random_object_pose, render_view
+from catalign.data.views import random_object_pose, render_view
 from catalign.features.weights import YAW_BINS
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame

@@ -17,7 +17,7 @@ import numpy as np
 
 from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.decision.answers import best_other
 from catalign.registration.decision.confidence import Calibrator, Evidence
 from catalign.registration.decision.rules import Finished, Refined

@@ -102,6 +102,16 @@ class Decision:
     def winner(self) -> Finished:
         return self.answers[0]
 
+    def fits_exactly(self, exact_fitness: float) -> bool:
+        """Whether the winner fits the query as only the observed instance itself does."""
+        return self.winner.fit.fitness >= exact_fitness
+
+    def weak(self, fallback: float) -> bool:
+        """Whether the winner is less confident than ``fallback`` (always, without a
+        calibrator)."""
+        confidence = self.winner.confidence
+        return confidence is None or confidence < fallback
+
 
 Refine = Callable[[Found], Refined]
 Finish = Callable[[Refined, Sequence[Scored], bool], Finished]

@@ -19,7 +19,7 @@ Proposed ups are snapped to the largest plane nearly perpendicular to them
 few. A proposal with no plane near it is searched as it is, marked rough (:class:`SearchedUp`):
 the category fit does not stand another instance on it alone. The **floor** is found here
 too, because where the floor is depends on which way is up
-(:func:`~catalign.registration.prepare.cleanup.floor_mask`): under the given up, or under the first
+(:func:`~catalign.registration.prepare.floor.floor_mask`): under the given up, or under the first
 proposed up that has a floor beneath the cloud and spreads past the chair (a chair's back or
 side is flat too: :data:`GUESSED_FLOOR_SPREAD`), and, given or guessed, that leaves a query's
 worth of object standing on it (``min_voxels`` occupied voxels). A floor is the best witness
@@ -40,7 +40,7 @@ import numpy as np
 from catalign.features.orientation import OrientationProposer
 from catalign.geometry.levelling import leveller
 from catalign.geometry.sampling import voxel_downsample
-from catalign.registration.prepare.cleanup import cone_planes, floor_mask
+from catalign.registration.prepare.floor import cone_planes, floor_mask
 from catalign.registration.prepare.validation import MIN_VOXELS
 from catalign.registration.results import Orientation
 from catalign.registration.stages.describe import even_headings
@@ -55,7 +55,7 @@ SNAP_TOLERANCE_VOXELS = 0.4
 SNAP_SHARE = 0.1
 SNAP_MIN_POINTS = 30
 # Under a proposed up, a floor must spread this many times wider than the chair's shadow on it
-# (:func:`~catalign.registration.prepare.cleanup.spread`): under the first proposal, then under the
+# (:func:`~catalign.registration.prepare.floor.spread`): under the first proposal, then under the
 # less likely others. On the evaluation's so3 views (seeds 0 and 1, no floor) a chair's back or
 # side passed every other rule of a floor in 18 of 107 views, 12 of them under the second or
 # third proposal, where it spread 0.6 to 1.9 times the rest of the chair. A floor disc reaching
@@ -137,7 +137,8 @@ def orient(
     elif proposer is not None:
         if not guessed_ups:
             proposals = proposer.ups(points, up_proposals)
-            guessed_ups = tuple(_snapped(points, p.value, p.score, voxel) for p in proposals)
+            cells = plane_cells(points, voxel)  # laid once for every proposal
+            guessed_ups = tuple(_snapped(cells, p.value, p.score, voxel) for p in proposals)
         ups = list(guessed_ups)
     else:
         ups = [SearchedUp(None)]
@@ -190,9 +191,10 @@ def orient(
     return Oriented(orientations, floor, first, guessed_ups)
 
 
-def _snapped(points: np.ndarray, proposed: np.ndarray, belief: float, voxel: float) -> SearchedUp:
-    """A proposed up snapped to the plane near it (:func:`plane_near`), rough where none is."""
-    normal = plane_near(points, proposed, voxel=voxel)
+def _snapped(cells: np.ndarray, proposed: np.ndarray, belief: float, voxel: float) -> SearchedUp:
+    """A proposed up snapped to the plane near it among the :func:`plane_cells` ``cells``
+    (:func:`plane_near`), rough where none is."""
+    normal = _plane_among(cells, proposed, voxel=voxel, max_deg=SNAP_DEG)
     return SearchedUp(proposed if normal is None else normal, belief, normal is None)
 
 
@@ -222,7 +224,18 @@ def plane_near(
 ) -> np.ndarray | None:
     """The unit normal (on ``up``'s side) of the largest plane of ``points`` within
     ``max_deg`` of ``up`` that holds :data:`SNAP_SHARE` of the cloud, None when there is none."""
-    cloud, _ = voxel_downsample(points, SNAP_CELL_VOXELS * voxel)
+    return _plane_among(plane_cells(points, voxel), up, voxel=voxel, max_deg=max_deg)
+
+
+def plane_cells(points: np.ndarray, voxel: float) -> np.ndarray:
+    """The grid planes are sought on: one centroid per cell of :data:`SNAP_CELL_VOXELS`."""
+    return voxel_downsample(points, SNAP_CELL_VOXELS * voxel)[0]
+
+
+def _plane_among(
+    cloud: np.ndarray, up: np.ndarray, *, voxel: float, max_deg: float
+) -> np.ndarray | None:
+    """:func:`plane_near` on the :func:`plane_cells` ``cloud``."""
     if len(cloud) < 3:
         return None
     rng = np.random.default_rng(0)

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from catalign.geometry.levelling import level_pose, leveller
 from catalign.geometry.se3 import make_pose
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.refine import Refiner
 from catalign.registration.stages.verify import surface_sample

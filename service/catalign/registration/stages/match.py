@@ -22,7 +22,7 @@ from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.gravity import yaw_ransac
 from catalign.registration.stages.model_cache import ModelCache

@@ -29,7 +29,7 @@ import small_gicp
 
 from catalign.geometry.distance_grid import DistanceGrid
 from catalign.geometry.se3 import invert, split_scale, transform
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.model_cache import ModelCache
 

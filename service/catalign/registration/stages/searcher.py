@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.stages.match import Matcher

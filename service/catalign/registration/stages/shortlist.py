@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
 

@@ -29,7 +29,7 @@ import numpy as np
 from catalign.geometry.distance_grid import LEVELS, DistanceGrid
 from catalign.geometry.levelling import yaw_rotations
 from catalign.geometry.se3 import make_pose
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.gravity import DISTINCT_YAW_DEG, distinct_poses
 from catalign.registration.stages.hypothesise import NO_MATCHES, Hypothesis

@@ -18,7 +18,7 @@ from dataclasses import KW_ONLY, dataclass, field
 import numpy as np
 
 from catalign.frames import MODEL_UP
-from catalign.library.index import Library
+from catalign.library.loaded import Library
 from catalign.registration.results import Candidate
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.model_cache import ModelCache

@@ -1,8 +1,9 @@
-"""Find what a robot's segmentation kept around a chair, so that it can be set aside before the
-features are computed: the floor the chair stands on, and small clusters detached from it.
+"""Find the floor a robot's segmentation kept under a chair, so that it can be set aside before
+the features are computed (small clusters detached from the chair are
+:mod:`~catalign.registration.prepare.detached`'s).
 
-Both functions only return masks; the caller decides what to drop (the floor first: a floor
-joins everything standing on it into one cluster).
+Both return masks; the caller decides what to drop (the floor first: a floor joins everything
+standing on it into one cluster).
 
 **Floor** (:func:`floor_mask`). Heights ``h = points @ up``; the floor, if any, is the lowest
 large flat part of the cloud. A plane is searched among the points near the bottom (within
@@ -37,29 +38,13 @@ on, with a few points beyond it, is all plane and passes every other rule).
 
 The mask then holds the inliers and every point below the plane. Measured on ray-cast views of
 the 60 procedural chairs (3 per chair, camera at 1.2 to 3 m, elevation 5 to 50 degrees, depth
-noise as :class:`~catalign.data.views.DepthNoise`) with a disc of floor reaching 0.3 m beyond
+noise as :class:`~catalign.data.camera.DepthNoise`) with a disc of floor reaching 0.3 m beyond
 the chair: the floor is found in 178 of 180 views (the two others see less than 0.1 m2 of
 floor past a sofa filling the image), recall 99.1 % at the least; chair points masked: 0.8 %
 on average, 1.9 % at the 95th percentile. Parts lying on the floor lose what is within the
 tolerance of it: a pedestal stool's base plate (2.5 cm thick) 5 to 10 % of the view, sled
 runners up to 4 %. With ``up`` off by 10 degrees the numbers are the same. With no floor in
 view, nothing is masked in 300 views, nor in 300 with ``up`` off by 10 degrees.
-
-**Detached clusters** (:func:`detached_mask`). Points are put in cells of ``link / 3``; the
-occupied cells are grown by one cell and labelled with 26-connectivity (``scipy.ndimage``), so
-two points closer than ``link`` are always in one cluster, and two clusters farther apart than
-4/3 ``link`` along every axis (2.3 ``link`` at most) never are. The main body is the largest
-cluster by points; a cluster with fewer than :data:`SMALL_SHARE` of its points is set aside,
-never more than half of the cloud (smallest clusters first). The default ``link`` of 0.2 m is
-measured: a 320 x 240 camera at 1.2 to 3 m sees surfaces at grazing angles as rows of points
-several centimetres apart, and occlusion splits an office chair's base from its seat by 15 to
-30 cm, so a chair's own view falls apart at small links. Over 240 ray-cast views of the 60
-procedural chairs (no clutter), a link of 5 cm sets aside something in 59 % of the views (1.9 %
-of the points on average, 16 % at most); 0.2 m in 11 % (0.13 % on average: 30 clusters of
-28 points in the median, the largest an office chair's base 0.26 m under a seat that hides its
-column, 6.7 % of that view). A blob of 200 points put 0.5 m from a chair is set aside in 90 % of
-those views (the others have fewer than 2,000 points, so the blob is over a tenth of them),
-at 0.3 m in 47 %, at 0.2 m never.
 """
 
 from __future__ import annotations
@@ -70,17 +55,15 @@ from dataclasses import dataclass
 from numbers import Real
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from catalign.errors import InvalidInputError
 from catalign.geometry.sampling import occupied_voxels
 from catalign.registration.prepare.validation import MAX_RANGE_M
 
-# Fewer points than this: nothing to clean, both masks are all False.
+# Fewer points than this: nothing to clean, the masks are all False.
 MIN_POINTS = 10
 
-# --- floor ---
 # Largest angle between the floor's normal and the caller's up (up may be off by ~10 degrees).
 MAX_TILT_DEG = 12.0
 # The bottom of the cloud: this percentile of the heights (robust to a few stray points) ...
@@ -114,17 +97,6 @@ MAX_SIGMA_M = 0.02
 MAX_BELOW_SHARE = 0.02
 BELOW_SLACK = 20
 
-# --- detached clusters ---
-# Default link (see the module docstring for the measurements behind it).
-DEFAULT_LINK_M = 0.2
-# Cells per link: cells of link/3 grown by one cell join every pair closer than link.
-CELLS_PER_LINK = 3
-# A larger grid than this is coarsened (a cell twice as large, until it fits).
-MAX_GRID_CELLS = 20_000_000
-# Clusters with fewer points than this share of the main body's are set aside.
-SMALL_SHARE = 0.1
-# Never more than this share of the cloud is set aside.
-MAX_SET_ASIDE = 0.5
 # Floor remnants: points this low above a found floor, outside the footprint of the points
 # above them widened by this margin (see _floor_remnants).
 REMNANT_BAND_M = 0.05
@@ -164,7 +136,7 @@ def floor_mask(
     ``min_standing``, what stands on it must occupy that many ``voxel`` cells. See the module
     docstring for the rules and their measured thresholds.
     """
-    pts = _as_cloud(points)
+    pts = as_cloud(points)
     fit = fit_floor(pts, up, voxel=voxel)
     if fit is None or not fit.is_floor:
         return np.zeros(len(pts), dtype=bool)
@@ -223,9 +195,9 @@ def _floor_remnants(points: np.ndarray, heights: np.ndarray, normal: np.ndarray)
 def fit_floor(points: np.ndarray, up: np.ndarray, *, voxel: float) -> FloorFit | None:
     """The lowest near-horizontal plane of the cloud and whether it is a floor (None when the
     cloud is too small to hold one); :func:`floor_mask` is what most callers want."""
-    pts = _as_cloud(points)
+    pts = as_cloud(points)
     up = _as_up(up)
-    _check_length(voxel, "voxel")
+    check_length(voxel, "voxel")
     if len(pts) < MIN_POINTS:
         return None
     heights = pts @ up
@@ -269,32 +241,7 @@ def fit_floor(points: np.ndarray, up: np.ndarray, *, voxel: float) -> FloorFit |
     )
 
 
-def detached_mask(points: np.ndarray, *, link: float = DEFAULT_LINK_M) -> np.ndarray:
-    """Boolean mask (N,) of points in small clusters detached from the main object (no point
-    within ``link`` metres of the main body).
-
-    Clusters join points closer than ``link`` (and never points more than 2.3 ``link`` apart);
-    the largest is the main body and is always kept; clusters under a tenth of its size are set
-    aside, at most half of the cloud. See the module docstring for why ``link`` is 0.2 m.
-    """
-    pts = _as_cloud(points)
-    _check_length(link, "link")
-    if len(pts) < MIN_POINTS:
-        return np.zeros(len(pts), dtype=bool)
-    labels = _clusters(pts, link)
-    sizes = np.bincount(labels)
-    main = int(np.argmax(sizes))
-    small = np.flatnonzero(sizes < SMALL_SHARE * sizes[main])
-    small = small[small != main]
-    # Smallest first, while the total stays within MAX_SET_ASIDE of the cloud.
-    small = small[np.argsort(sizes[small], kind="stable")]
-    fits = np.cumsum(sizes[small]) <= MAX_SET_ASIDE * len(pts)
-    aside = np.zeros(len(sizes), dtype=bool)
-    aside[small[fits]] = True
-    return aside[labels]
-
-
-def _as_cloud(points: np.ndarray) -> np.ndarray:
+def as_cloud(points: np.ndarray) -> np.ndarray:
     """Finite float64 (N, 3) points, or InvalidInputError (far coordinates would blow up grids)."""
     try:
         cloud = np.asarray(points, dtype=np.float64)
@@ -322,7 +269,8 @@ def _as_up(up: np.ndarray) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
 
-def _check_length(value: float, name: str) -> None:
+def check_length(value: float, name: str) -> None:
+    """InvalidInputError unless ``value`` is a positive finite number (metres)."""
     number = isinstance(value, Real) and not isinstance(value, bool)
     if not number or not math.isfinite(value) or value <= 0:
         raise InvalidInputError(f"{name} must be a positive number of metres, got {value!r}")
@@ -405,20 +353,3 @@ def _coverage(uv: np.ndarray, voxel: float) -> tuple[float, int]:
             if di or dj:
                 full &= np.isin(keys + di * width + dj, keys, assume_unique=False)
     return float(area), int(full.sum())
-
-
-def _clusters(points: np.ndarray, link: float) -> np.ndarray:
-    """Cluster label (N,) of each point: 26-connected components of the occupied cells of
-    ``link / 3`` grown by one cell, so any two points closer than ``link`` share a label."""
-    cell = link / CELLS_PER_LINK
-    low = points.min(axis=0)
-    span = points.max(axis=0) - low
-    # Guard: a cloud over some 18 m (at 0.2 m) gets coarser cells, which join more, never less.
-    while float(np.prod(np.floor(span / cell) + 3)) > MAX_GRID_CELLS:
-        cell *= 2.0
-    keys = np.floor((points - low) / cell).astype(np.int64) + 1
-    grid = np.zeros(tuple(keys.max(axis=0) + 2), dtype=bool)
-    grid[tuple(keys.T)] = True
-    cube = np.ones((3, 3, 3), dtype=bool)
-    labelled, _ = ndimage.label(ndimage.binary_dilation(grid, cube), structure=cube)
-    return labelled[tuple(keys.T)] - 1
