@@ -127,6 +127,20 @@ def decide(
     if not found:
         return None
     matched = [item for item in found if not item.swept] or list(found)
+    refined, best = _refined(matched, found, rules, refine)
+    ranked = ranked_answers(refined, best, rules)
+    sources = {id(r.found.scored) for r in refined}
+    tried = [r.scored for r in refined]
+    tried += [item.scored for item in matched if id(item.scored) not in sources]
+    finished = [finish(r, tried, rank == 0) for rank, r in enumerate(ranked)]
+    return Decision(tuple(_promoted(finished, ranked, tried, rules, finish)), tuple(tried))
+
+
+def _refined(
+    matched: list[Found], found: Sequence[Found], rules: Rules, refine: Refine
+) -> tuple[list[Refined], list[Refined]]:
+    """Steps 1 and 2 of the module docstring: the refined poses, and among them the refined
+    best matches (the winner when nothing fits exactly)."""
     leading = matched[: rules.refine]
     leading += [
         item
@@ -138,24 +152,31 @@ def decide(
     if not any(_fits(r, rules.sure_fitness) for r in refined):
         for item in swept_to_refine(found, rules.sweep_refine):
             done = refine(item)
-            if _fits(done, rules.exact_fitness) and not any(
-                done.scored is r.scored for r in refined
-            ):
+            known = any(done.scored is r.scored for r in refined)
+            if _fits(done, rules.exact_fitness) and not known:
                 refined.append(done)
-    ranked = ranked_answers(refined, best, rules)
-    sources = {id(r.found.scored) for r in refined}
-    tried = [r.scored for r in refined]
-    tried += [item.scored for item in matched if id(item.scored) not in sources]
-    finished = [finish(r, tried, rank == 0) for rank, r in enumerate(ranked)]
-    if finished[0].fit.fitness < rules.exact_fitness:
-        first = promoted([f.confidence for f in finished], rules.confidence_margin)
-        if first:
-            challenger = finish(ranked[first], tried, True)
-            pair = [finished[0].confidence, challenger.confidence]
-            if promoted(pair, rules.confidence_margin):
-                del finished[first]
-                finished.insert(0, challenger)
-    return Decision(tuple(finished), tuple(tried))
+    return refined, best
+
+
+def _promoted(
+    finished: list[Finished],
+    ranked: list[Refined],
+    tried: list[Scored],
+    rules: Rules,
+    finish: Finish,
+) -> list[Finished]:
+    """Step 4 of the module docstring: ``finished`` (the winner first), with an alternative
+    clearly more confident than a winner that does not fit exactly in the winner's place, if it
+    still is once refitted as the winner was."""
+    if finished[0].fit.fitness >= rules.exact_fitness:
+        return finished
+    first = promoted([f.confidence for f in finished], rules.confidence_margin)
+    if not first:
+        return finished
+    challenger = finish(ranked[first], tried, True)
+    if not promoted([finished[0].confidence, challenger.confidence], rules.confidence_margin):
+        return finished
+    return [challenger, *finished[:first], *finished[first + 1 :]]
 
 
 def ranked_answers(
