@@ -10,7 +10,11 @@ server to parse instead.
 from __future__ import annotations
 
 import io
+import math
+import struct
 from pathlib import Path
+from tokenize import TokenError
+from typing import BinaryIO
 
 import numpy as np
 
@@ -46,12 +50,39 @@ def read_points(path: str | Path) -> np.ndarray:
 
 def _read_npy(path: Path) -> np.ndarray:
     try:
-        array = np.load(path, allow_pickle=False)
-    except ValueError as exc:
+        with path.open("rb") as handle:
+            _check_npy_header(path.name, handle, path.stat().st_size)
+            array = np.load(handle, allow_pickle=False)
+    except (ValueError, SyntaxError, TypeError, OverflowError, RecursionError, TokenError) as exc:
         raise InvalidPointsError(f"{path.name}: not a plain numeric .npy array: {exc}") from exc
     if array.ndim != 2 or array.shape[1] < 3:
         raise InvalidPointsError(f"{path.name}: expected an (N, 3) array, got shape {array.shape}")
+    if array.dtype.kind not in "biuf":
+        raise InvalidPointsError(f"{path.name}: expected numbers, got an array of {array.dtype}")
     return np.asarray(array[:, :3], dtype=np.float64)
+
+
+def _check_npy_header(name: str, handle: BinaryIO, size: int) -> None:
+    """Refuse a header whose length or array the file's size cannot hold, before numpy
+    allocates either; leaves ``handle`` at the start of the file."""
+    fmt = np.lib.format
+    version = fmt.read_magic(handle)
+    if version not in ((1, 0), (2, 0), (3, 0)):
+        raise InvalidPointsError(f"{name}: unknown .npy format version {version}")
+    layout = "<H" if version == (1, 0) else "<I"
+    length = handle.read(struct.calcsize(layout))
+    if len(length) < struct.calcsize(layout) or struct.unpack(layout, length)[0] > size:
+        raise InvalidPointsError(f"{name}: the .npy header is longer than the file")
+    handle.seek(len(fmt.MAGIC_PREFIX) + 2)
+    read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, _, dtype = read_header(handle)
+    declared = math.prod(shape) * dtype.itemsize
+    if declared != size - handle.tell():
+        raise InvalidPointsError(
+            f"{name}: the .npy header declares {declared} bytes of data, "
+            f"but the file holds {size - handle.tell()}"
+        )
+    handle.seek(0)
 
 
 def _read_xyz(path: Path) -> np.ndarray:
@@ -116,6 +147,11 @@ def _parse_ply_header(name: str, header: str) -> tuple[str, list[_PlyElement]]:
         elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property" and elements and len(words) >= 3:
+            prop = words[-1] if words[1] == "list" else words[2]
+            if any(prop == known for known, _ in elements[-1][2]):
+                raise InvalidPointsError(
+                    f"{name}: PLY element {elements[-1][0]!r} has two properties named {prop!r}"
+                )
             if words[1] == "list":
                 elements[-1][2].append((words[-1], None))
             elif words[1] in _PLY_TYPES:

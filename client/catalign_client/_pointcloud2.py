@@ -84,8 +84,6 @@ def pointcloud2_points(msg: Any) -> np.ndarray:
             f"PointCloud2 row_step {row_step} is smaller than width * point_step "
             f"({width} * {point_step})"
         )
-    endian = ">" if getattr(msg, "is_bigendian", False) else "<"
-    dtype = _record_dtype(msg.fields, point_step, endian)
     buffer = _bytes(msg.data)
     if buffer.size < row_step * height:
         raise InvalidPointsError(
@@ -94,6 +92,9 @@ def pointcloud2_points(msg: Any) -> np.ndarray:
         )
     if width * height == 0:
         raise InvalidPointsError(f"PointCloud2 has no points (width {width}, height {height})")
+    # Only now is point_step known to fit in the data, and so in the record type numpy builds.
+    endian = ">" if getattr(msg, "is_bigendian", False) else "<"
+    dtype = _record_dtype(msg.fields, point_step, endian)
     # One view over the buffer: rows row_step bytes apart, records point_step bytes apart.
     strides = (row_step, point_step)
     records = np.ndarray((height, width), dtype=dtype, buffer=buffer, strides=strides)

@@ -163,6 +163,11 @@ def _read_with_trimesh(path: Path) -> ShapeData:
     if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) > 0:
         vertices = check_points(loaded.vertices, str(path))
         faces = np.asarray(loaded.faces, dtype=np.int64)
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise ShapeReadError(
+                f"{path}: its faces refer to vertices {int(faces.min())} to {int(faces.max())}, "
+                f"but it has only vertices 0 to {len(vertices) - 1}"
+            )
         return ShapeData(points=vertices, mesh=MeshData(vertices=vertices, faces=faces))
     vertices = getattr(loaded, "vertices", None)
     if vertices is None or len(vertices) == 0:

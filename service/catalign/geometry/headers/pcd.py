@@ -38,15 +38,20 @@ def check_pcd(f: File, handle: BinaryIO) -> Declared:
     if any(b not in (1, 2, 4, 8) for b in field_bytes):
         raise f.unreadable(f"the header's SIZE ({' '.join(sizes)}) is not 1, 2, 4 or 8 bytes")
     field_counts = [whole(f, c, "field COUNT") for c in counts]
+    if 0 in field_counts:  # Open3D reads a value of every field all the same, past the record
+        raise f.unreadable(f"the header's COUNT ({' '.join(counts)}) has a field of no values")
     point_values = sum(field_counts)
     point_bytes = sum(b * c for b, c in zip(field_bytes, field_counts, strict=True))
 
+    _check_count_lines(f, [w[0] for w in lines if w])
     declared = []
     if "POINTS" in values:
         declared.append(whole(f, _single(f, values, "POINTS"), "POINTS value"))
     if "WIDTH" in values:
+        if "HEIGHT" not in values:  # Open3D would multiply WIDTH by a height it never set
+            raise f.unreadable("the header declares a WIDTH but no HEIGHT")
         width = whole(f, _single(f, values, "WIDTH"), "WIDTH")
-        height = whole(f, _single(f, values, "HEIGHT"), "HEIGHT") if "HEIGHT" in values else 1
+        height = whole(f, _single(f, values, "HEIGHT"), "HEIGHT")
         declared.append(width * height)
     if not declared:
         raise f.unreadable("the header declares neither POINTS nor WIDTH")
@@ -75,6 +80,16 @@ def _pcd_column(
             f"the header's {key} line has {len(column)} values for {len(fields)} FIELDS"
         )
     return column
+
+
+def _check_count_lines(f: File, keys: list[str]) -> None:
+    """Open3D sets its point count on each POINTS line and, as WIDTH times HEIGHT, on each
+    HEIGHT line, with whatever width it has read by then (none: uninitialised memory)."""
+    for key in ("POINTS", "WIDTH", "HEIGHT"):
+        if keys.count(key) > 1:
+            raise f.unreadable(f"the header has {keys.count(key)} {key} lines")
+    if "HEIGHT" in keys and ("WIDTH" not in keys or keys.index("HEIGHT") < keys.index("WIDTH")):
+        raise f.unreadable("the header's HEIGHT line comes before any WIDTH line")
 
 
 def _single(f: File, values: dict[str, list[str]], key: str) -> str:
