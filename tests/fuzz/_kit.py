@@ -21,16 +21,14 @@ failures shrink), the benchmark a seeded one.
 from __future__ import annotations
 
 import array
-import contextlib
 import copy
 import io
 import json
 import random
 import re
-import resource
 import struct
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -50,13 +48,12 @@ from catalign_client._files import UnsupportedFileError
 from catalign_client._files import read_points as client_read_points
 from catalign_client._pointcloud2 import pointcloud2_points
 from catalign_client._points import as_points
+from tests._memory import address_space_capped
 
 o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # refusals are expected
 
 MAX_POINTS = 10_000
 MAX_FACES = 20_000
-HEADROOM = 1 << 30
-"""Bytes a read may map beyond what the process uses: far above any honest 64 KB file."""
 
 SEED_POINTS = 50
 
@@ -521,23 +518,6 @@ def mutate_message(rng: random.Random) -> SimpleNamespace:
 
 
 # --- the property --------------------------------------------------------------------------
-
-
-@contextlib.contextmanager
-def address_space_capped() -> Iterator[None]:
-    """Let the process map at most HEADROOM more bytes while the block runs."""
-    used_kb = int(
-        re.search(rb"VmSize:\s+(\d+) kB", Path("/proc/self/status").read_bytes()).group(1)
-    )
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    cap = used_kb * 1024 + HEADROOM
-    if hard != resource.RLIM_INFINITY:
-        cap = min(cap, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
 def assert_points(points: object, max_points: int | None) -> int:

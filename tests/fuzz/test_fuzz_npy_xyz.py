@@ -21,10 +21,10 @@ from catalign.errors import ShapeReadError
 from catalign.geometry.io import read_points
 from catalign_client import InvalidPointsError
 from catalign_client._files import read_points as client_read_points
+from tests._memory import address_space_capped
 from tests.fuzz._kit import (
     SEED_POINTS,
     TARGETS,
-    address_space_capped,
     npy_seeds,
     run_target,
     xyz_seeds,

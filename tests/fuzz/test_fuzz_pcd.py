@@ -20,7 +20,8 @@ from catalign.errors import ShapeReadError
 from catalign.geometry.io import read_points
 from catalign_client._files import UnsupportedFileError
 from catalign_client._files import read_points as client_read_points
-from tests.fuzz._kit import SEED_POINTS, TARGETS, address_space_capped, pcd_seeds, run_target
+from tests._memory import address_space_capped
+from tests.fuzz._kit import SEED_POINTS, TARGETS, pcd_seeds, run_target
 
 FUZZ = settings(max_examples=600, deadline=None, derandomize=True, database=None)
 

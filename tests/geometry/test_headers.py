@@ -8,12 +8,10 @@ MemoryError here instead of asking for gigabytes.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import re
 import struct
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +22,8 @@ import trimesh
 from catalign.errors import ShapeReadError
 from catalign.geometry.headers import Declared, check_header
 from catalign.geometry.io import read_mesh, read_points, read_shape
+from tests._memory import HEADROOM, address_space_capped
 
-HEADROOM = 1 << 30  # bytes a refused read may still map: far below what any lie claims
 HUGE = 10**12
 
 
@@ -39,35 +37,16 @@ def mesh() -> trimesh.Trimesh:
     return trimesh.creation.icosphere(subdivisions=2)  # 162 vertices, 320 faces
 
 
-@contextlib.contextmanager
-def _address_space_capped() -> Iterator[None]:
-    """Let the process map at most HEADROOM more bytes while the block runs (Linux only)."""
-    resource = pytest.importorskip("resource")
-    status = Path("/proc/self/status")
-    if not status.is_file():
-        pytest.skip("no /proc/self/status to measure the address space")
-    used_kb = int(re.search(r"VmSize:\s+(\d+) kB", status.read_text()).group(1))
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    cap = used_kb * 1024 + HEADROOM
-    if hard != resource.RLIM_INFINITY:
-        cap = min(cap, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
-
-
 def test_the_address_space_cap_works():
     """The harness itself: under the cap, asking for more than HEADROOM is a MemoryError."""
-    with _address_space_capped(), pytest.raises(MemoryError):
+    with address_space_capped(), pytest.raises(MemoryError):
         np.ones(2 * HEADROOM // 8)
 
 
 def _refused(path: Path, match: str = "declares", **limits: int) -> str:
     """Read ``path`` under a capped address space; it must be refused, quickly, by name."""
     started = time.perf_counter()
-    with _address_space_capped(), pytest.raises(ShapeReadError, match=match) as info:
+    with address_space_capped(), pytest.raises(ShapeReadError, match=match) as info:
         read_shape(path, **limits)
     assert time.perf_counter() - started < 5.0
     message = str(info.value)
@@ -627,7 +606,7 @@ def test_truncated_files_are_refused_or_read(tmp_path: Path, cloud, mesh, kind: 
     cut = path.with_name(f"cut{path.suffix}")
     for end in sorted({1, 7, 30, 90, 200, len(data) // 2, len(data) - 1}):
         cut.write_bytes(data[:end])
-        with _address_space_capped():
+        with address_space_capped():
             try:
                 read_shape(cut)
             except ShapeReadError as exc:
