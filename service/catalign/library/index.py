@@ -1,12 +1,9 @@
-"""The CAD library index: build, add, remove, load and inspect a library directory.
+"""The CAD library index: build, add, remove, configure and inspect a library directory
+(reading it is :mod:`catalign.library.loaded`'s).
 
 Writers describe their shapes under the library's lock and stream each entry to its own file,
 then commit a new manifest (see :mod:`catalign.library.store` for why a crash never leaves a
 half-written library); :func:`configure` sets the engine options the library is served with.
-:func:`load` checks the format version, the extractor fingerprint and every entry's checksum,
-and returns a :class:`Library` whose arrays view the entry files (memory-mapped, shared between
-processes), with the descriptors and sizes stacked for
-:func:`~catalign.library.retrieval.shortlist`.
 
 Poses found against an entry map the entry's stored coordinates, i.e. its *source coordinates
 converted to metres* (``source * unit_factor(units)``), into the observation.
