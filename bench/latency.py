@@ -5,13 +5,14 @@ a query whose heading proposal is confident and whose answer is sure is describe
 heading, others at two, so one view is not typical) are registered against libraries of 10, 50,
 200 and 1000 procedural chairs (built once with the shipped weights and cached under
 ``--cache``), with the engine's defaults: with ``up``, with ``up`` at both proposed headings
-always (``heading_mass=none``), with ``up`` and no sweep (``sweep_models=0``: the sweep's cost),
-with and without ``up`` with every exact fit taken as sure (``sure_fitness=0.9``: the cost of
-refining swept poses when a fit is exact but not sure), with ``up`` at every heading (no heading
-proposals: the baseline of the features stage), without ``up`` (searched under the confident
-proposed ups first, ``up_mass``) and without ``up`` under every proposed up always
-(``up_mass=none``). The FPFH baseline (Open3D's recipe, every model tried) runs in the same
-process on the small libraries, where it finishes. Prints a markdown table and writes it to
+always (``orient.heading_mass=none``), with ``up`` and no sweep (``sweep.models=0``: the
+sweep's cost), with and without ``up`` with every exact fit taken as sure
+(``decision.sure_fitness=0.9``: the cost of refining swept poses when a fit is exact but not
+sure), with ``up`` at every heading (no heading proposals: the baseline of the features stage),
+without ``up`` (searched under the confident proposed ups first, ``orient.up_mass``) and
+without ``up`` under every proposed up always (``orient.up_mass=none``). The FPFH baseline
+(Open3D's recipe, every model tried) runs in the same process on the small libraries, where it
+finishes. Prints a markdown table and writes it to
 ``bench/results/latency.md``.
 
     .venv/bin/python bench/latency.py [--sizes 10 50 200 1000] [--runs 5] [--queries 8]
@@ -48,13 +49,13 @@ QUERY_SEED = 5000
 # How each row of the table calls the engine: its configuration and the up it is given.
 MODES = {
     "learned engine, up": ({}, WORLD_UP),
-    "learned engine, up, both proposed headings": ({"heading_mass": None}, WORLD_UP),
-    "learned engine, up, no sweep": ({"sweep_models": 0}, WORLD_UP),
-    "learned engine, up, every exact fit sure": ({"sure_fitness": 0.9}, WORLD_UP),
-    "learned engine, up, every heading": ({"heading_proposals": None}, WORLD_UP),
+    "learned engine, up, both proposed headings": ({"orient": {"heading_mass": None}}, WORLD_UP),
+    "learned engine, up, no sweep": ({"sweep": {"models": 0}}, WORLD_UP),
+    "learned engine, up, every exact fit sure": ({"decision": {"sure_fitness": 0.9}}, WORLD_UP),
+    "learned engine, up, every heading": ({"orient": {"heading_proposals": None}}, WORLD_UP),
     "learned engine, no up": ({}, None),
-    "learned engine, no up, every proposed up": ({"up_mass": None}, None),
-    "learned engine, no up, every exact fit sure": ({"sure_fitness": 0.9}, None),
+    "learned engine, no up, every proposed up": ({"orient": {"up_mass": None}}, None),
+    "learned engine, no up, every exact fit sure": ({"decision": {"sure_fitness": 0.9}}, None),
 }
 
 

@@ -128,7 +128,7 @@ def cache_growth(library_dir: Path, model_cache: int | None) -> tuple[int, int]:
     )
     before = psutil.Process().memory_info().rss
     for model_id in engine.library.ids:
-        engine.matcher.matchable(model_id)
+        engine.searcher.matcher.matchable(model_id)
         engine.refiner.surface(model_id)
     return psutil.Process().memory_info().rss - before, len(engine.refiner._surfaces)
 

@@ -1,16 +1,16 @@
 """Speed against accuracy: the evaluation's test cases under several engine settings.
 
-Each setting (``name=value`` :class:`~catalign.registration.config.EngineConfig` fields,
-comma-separated, ``none`` for None; ``default`` for none changed; an unknown name or a bad value
-fails before anything runs) registers
-every test case of ``catalign evaluate`` (both settings, every ``--seeds`` seed) through the
-same real library indexes, built once, and is scored exactly as the evaluation scores it. The
+Each setting (``name=value`` :class:`~catalign.registration.config.EngineConfig` options by
+their dotted names, comma-separated, ``none`` for None; ``default`` for none changed; an unknown
+name or a bad value fails before anything runs) registers every test case of ``catalign
+evaluate`` (both settings, every ``--seeds`` seed) through the same real library indexes, built
+once, and is scored exactly as the evaluation scores it. The
 per-query time is the engine's own (the sum of its stage timings), so the table compares
 settings measured in one sitting on the same cases. Prints a markdown table and writes it to
 ``bench/results/tradeoff.md``; needs the shared chairs.
 
     .venv/bin/python bench/tradeoff.py [--seeds 0 1] [--model-dir DIR] \
-        [--configs default keep_headings=2 match_points=1000,model_points=none]
+        [--configs default match.keep_headings=2 match.query_points=1000,match.model_points=none]
 """
 
 from __future__ import annotations
@@ -44,10 +44,11 @@ RESULTS = Path(__file__).parent / "results" / "tradeoff.md"
 RATE_COLUMNS = ("RRE<10", "RRE<20", "RRE<30", "RTE<5cm", "RTE<10cm")
 DEFAULT_CONFIGS = [
     "default",
-    "match_points=1000,model_points=none",  # 1,000 query key points against all of a model's
-    "model_points=1500",
-    "keep_headings=2",
-    "heading_models=5",
+    # 1,000 query key points against all of a model's
+    "match.query_points=1000,match.model_points=none",
+    "match.model_points=1500",
+    "match.keep_headings=2",
+    "match.heading_models=5",
 ]
 
 

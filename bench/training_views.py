@@ -11,7 +11,7 @@ built once and every setting runs on it. Prints a markdown table and writes it t
 ``bench/results/training-views.md``.
 
     .venv/bin/python bench/training_views.py [--views 4] \
-        [--configs default heading_mass=none coverage_cell=0.75]
+        [--configs default orient.heading_mass=none verify.coverage_cell=0.75]
 """
 
 from __future__ import annotations

@@ -19,13 +19,13 @@ from catalign.errors import CatalignError
 
 Config = TypeVar("Config", bound=BaseModel)
 
-# ``--engine FIELD=VALUE`` (repeatable): EngineConfig fields, for the commands that take them.
+# ``--engine NAME=VALUE`` (repeatable): EngineConfig options, for the commands that take them.
 EngineOptions = Annotated[
     list[str] | None,
     typer.Option(
-        metavar="FIELD=VALUE",
-        help="An engine option, a field of catalign.registration.config.EngineConfig (e.g. "
-        "top_k=5); repeat the option for several.",
+        metavar="NAME=VALUE",
+        help="An engine option of catalign.registration.config.EngineConfig, by its dotted name "
+        "(e.g. top_k=5, sweep.models=0); repeat the option for several.",
     ),
 ]
 

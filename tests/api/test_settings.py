@@ -34,10 +34,17 @@ def test_environment_is_read_and_keywords_override_it(monkeypatch: pytest.Monkey
 
 def test_engine_options_come_from_nested_variables(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CATALIGN_ENGINE__TOP_K", "4")
-    monkeypatch.setenv("CATALIGN_ENGINE__MODEL_POINTS", "none")
-    settings = ServiceSettings()
-    assert (settings.engine.top_k, settings.engine.model_points) == (4, None)
-    assert settings.engine.match_points == EngineConfig().match_points
+    monkeypatch.setenv("CATALIGN_ENGINE__MATCH__MODEL_POINTS", "none")
+    monkeypatch.setenv("CATALIGN_ENGINE__FLOOR__MAX_TILT_DEG", "8")
+    monkeypatch.setenv("CATALIGN_ENGINE__SWEEP_MODELS", "3")  # a flat name of earlier releases
+    engine = ServiceSettings().engine
+    assert (engine.top_k, engine.match.model_points, engine.floor.max_tilt_deg) == (4, None, 8.0)
+    assert engine.sweep.models == 3
+    assert engine.match.query_points == EngineConfig().match.query_points
+    monkeypatch.setenv("CATALIGN_ENGINE__SWEEP__MODEL", "4")
+    with pytest.raises(ValidationError, match="model"):
+        ServiceSettings()
+    monkeypatch.delenv("CATALIGN_ENGINE__SWEEP__MODEL")
     monkeypatch.setenv("CATALIGN_ENGINE__TOPK", "4")
     with pytest.raises(ValidationError, match="topk"):
         ServiceSettings()
@@ -95,12 +102,16 @@ def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
 def test_serve_engine_flags_go_over_the_variables_field_by_field(
     serve_process: Callable[..., AbstractContextManager[ServerProcess]], library_dir: Path
 ) -> None:
-    flags = ("--engine", "refine=2", "--engine", "alternatives=1")
-    environment = {"CATALIGN_ENGINE__TOP_K": "4", "CATALIGN_ENGINE__REFINE": "5"}
+    flags = ("--engine", "icp.poses=2", "--engine", "decision.alternatives=1")
+    environment = {"CATALIGN_ENGINE__TOP_K": "4", "CATALIGN_ENGINE__ICP__POSES": "5"}
     with serve_process(library_dir, *flags, env=environment) as server:
         engine = httpx.get(f"{server.url}/info", timeout=10).json()["engine"]
-    assert (engine["top_k"], engine["refine"], engine["alternatives"]) == (4, 2, 1)
-    assert engine["match_points"] == EngineConfig().match_points
+    assert (engine["top_k"], engine["icp"]["poses"], engine["decision"]["alternatives"]) == (
+        4,
+        2,
+        1,
+    )
+    assert engine["match"] == EngineConfig().match.model_dump()
 
 
 def test_a_librarys_engine_options_apply_under_the_services(
@@ -108,19 +119,25 @@ def test_a_librarys_engine_options_apply_under_the_services(
     library_copy: Path,
     views: Callable[..., View],
 ) -> None:
-    options = ("--engine", "alternatives=0", "--engine", "top_k=2", "--engine", "refine=4")
+    options = ("--engine", "decision.alternatives=0", "--engine", "top_k=2", "--engine", "refine=4")
     configured = CliRunner().invoke(app, ["library", "configure", str(library_copy), *options])
     assert configured.exit_code == 0, configured.output
     environment = {"CATALIGN_ENGINE__TOP_K": "3"}
-    with serve_process(library_copy, "--engine", "refine=2", env=environment) as server:
+    with serve_process(library_copy, "--engine", "icp.poses=2", env=environment) as server:
         info = httpx.get(f"{server.url}/info", timeout=10).json()
         with Client(server.url, timeout=120) as client:
             result = client.align(views(seed=1).points, up=(0, 0, 1), seed=3)
-    assert info["library"]["engine"] == {"alternatives": 0, "top_k": 2, "refine": 4}
+    # stored as a tree, a flat name of earlier releases (refine) in its place
+    stored = {"decision": {"alternatives": 0}, "top_k": 2, "icp": {"poses": 4}}
+    assert info["library"]["engine"] == stored
     # the variable and the flag win over the library, the library over the defaults
     engine = info["engine"]
-    assert (engine["top_k"], engine["refine"], engine["alternatives"]) == (3, 2, 0)
-    assert engine["match_points"] == EngineConfig().match_points
+    assert (engine["top_k"], engine["icp"]["poses"], engine["decision"]["alternatives"]) == (
+        3,
+        2,
+        0,
+    )
+    assert engine["match"] == EngineConfig().match.model_dump()
     # the worker processes run with them too: no alternatives
     assert result.model_id == "proc-0001" and len(result.alternatives) == 0
 

@@ -58,10 +58,22 @@ def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: 
         app, ["library", "configure", str(library), "--engine", "top_k=5", "--engine", "refine=2"]
     )
     assert set_.exit_code == 0, set_.output
-    assert json.loads(manifest.read_text())["engine"] == {"top_k": 5, "refine": 2}
+    # stored as a tree, the flat name of earlier releases in its place
+    assert json.loads(manifest.read_text())["engine"] == {"top_k": 5, "icp": {"poses": 2}}
+    # a group is merged option by option, not replaced
+    more = ("--engine", "icp.iterations=20", "--engine", "sweep.models=0")
+    added = runner.invoke(app, ["library", "configure", str(library), *more])
+    assert added.exit_code == 0, added.output
+    stored = {"top_k": 5, "icp": {"poses": 2, "iterations": 20}, "sweep": {"models": 0}}
+    assert json.loads(manifest.read_text())["engine"] == stored
     # a bad option is refused in one sentence and changes nothing
     before = manifest.read_bytes()
-    for bad, said in (("bogus=1", "unknown engine option 'bogus'"), ("top_k=0", "top_k")):
+    refusals = (
+        ("bogus=1", "unknown engine option 'bogus'"),
+        ("top_k=0", "top_k"),
+        ("sweep.model=1", "unknown engine option 'sweep.model'"),
+    )
+    for bad, said in refusals:
         refused = runner.invoke(app, ["library", "configure", str(library), "--engine", bad])
         assert refused.exit_code == 2 and said in refused.stderr, refused.output
     assert manifest.read_bytes() == before
@@ -69,7 +81,7 @@ def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: 
     np.save(tmp_path / "beta.npy", procedural_shape(2).points.astype(np.float32))
     runner.invoke(app, ["library", "add", str(library), str(tmp_path / "beta.npy")])
     info = runner.invoke(app, ["library", "info", str(library)])
-    assert "models: 2" in info.output and "engine options: refine=2 top_k=5" in info.output
+    assert "models: 2" in info.output and "engine options: icp.iterations=20 icp.poses=2 sweep.models=0 top_k=5" in info.output
     cleared = runner.invoke(app, ["library", "configure", str(library), "--clear"])
     assert cleared.exit_code == 0 and "(the defaults)" in cleared.output
     assert json.loads(manifest.read_text())["engine"] == {}

@@ -160,7 +160,7 @@ def stop(request: pytest.FixtureRequest) -> Stop:
 
 def test_a_confident_right_proposal_is_searched_alone(extractor, monkeypatch, stop) -> None:
     result, recovered, searched = registered(extractor, monkeypatch, stop, 0.0)
-    assert recovered and result.confidence >= EngineConfig().heading_fallback
+    assert recovered and result.confidence >= EngineConfig().decision.heading_fallback
     assert searched == 1
 
 

@@ -63,10 +63,10 @@ def test_a_back_taken_for_a_floor_does_not_hide_the_chair(
         None,
         extractor.orientation,
         headings=engine.headings,
-        up_proposals=config.up_proposals,
-        heading_proposals=config.heading_proposals,
         voxel=extractor.voxel_size,
-        min_voxels=config.min_points,
+        min_voxels=config.input.min_points,
+        options=config.orient,
+        floor_options=config.floor,
     )
     assert guessed.floor.any(), "the view no longer shows a back that passes for a floor"
 

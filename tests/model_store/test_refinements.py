@@ -34,7 +34,9 @@ def test_every_pose_is_refined_and_fitted_once_over_two_rounds(
     extractor = LearnedExtractor()
     library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
     # one heading described first, and every answer weak: a second round always runs
-    config = EngineConfig(heading_mass=0.01, up_mass=0.01, heading_fallback=1.0)
+    config = EngineConfig(
+        orient={"heading_mass": 0.01, "up_mass": 0.01}, decision={"heading_fallback": 1.0}
+    )
     engine = Engine(extractor, library, config=config)
     refined: Counter[int] = Counter()
     fitted: Counter[int] = Counter()

@@ -33,7 +33,8 @@ MIN_RECOVERED_WITHOUT_UP = 6
 def engine() -> Engine:
     extractor = LearnedExtractor()
     library = load(DEFAULT_MODEL_DIR / "library", extractor.fingerprint)
-    return Engine(extractor, library, config=EngineConfig(headings=extractor.headings, top_k=10))
+    config = EngineConfig(orient={"headings": extractor.headings}, top_k=10)
+    return Engine(extractor, library, config=config)
 
 
 def _recovered(engine: Engine, seed: int) -> bool:

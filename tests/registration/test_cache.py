@@ -7,10 +7,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from catalign.registration.config import EngineConfig, from_config
-from catalign.registration.stages.match import Matcher
+from catalign.registration.assembly import build_matcher, build_refiner
+from catalign.registration.config import EngineConfig
 from catalign.registration.stages.model_cache import ModelCache
-from catalign.registration.stages.refine import Refiner
 
 
 def test_the_least_recently_used_model_is_dropped_first():
@@ -51,8 +50,8 @@ def test_the_stages_keep_at_most_model_cache_models(make_entry, make_library):
     rng = np.random.default_rng(0)
     library = make_library(*(make_entry(f"m{i}", rng.normal(size=(200, 3))) for i in range(3)))
     config = EngineConfig(model_cache=1)
-    matcher = from_config(Matcher, config, library, distance=0.05)
-    refiner = from_config(Refiner, config, library, distance=0.05)
+    matcher = build_matcher(config, library, distance=0.05)
+    refiner = build_refiner(config, library, distance=0.05)
     for model_id in library.ids:
         matcher.matchable(model_id)
         refiner.surface(model_id)

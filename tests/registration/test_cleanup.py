@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from catalign.data.camera import add_depth_noise, random_camera, render_mesh_view
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import random_object_pose
 from catalign.errors import InvalidInputError
 from catalign.geometry.se3 import axis_angle, transform
-from catalign.registration.prepare.detached import detached_mask
+from catalign.registration.prepare.detached import CleanupOptions, detached_mask
 from catalign.registration.prepare.floor import fit_floor, floor_mask
-from catalign.registration.prepare.orient import GUESSED_FLOOR_SPREAD
+from catalign.registration.prepare.orient import DEFAULT_OPTIONS as ORIENT_OPTIONS
 
 UP = np.array([0.0, 0.0, 1.0])
 # The shipped model's voxel (its card's): the clean-up reads distances in voxels of it.
@@ -70,7 +71,7 @@ def test_finds_a_ring_of_floor_around_a_chair(seed: int) -> None:
     assert mask[~is_floor].mean() <= 0.03
     # It spreads well past the chair: found under a guessed up too.
     assert np.array_equal(
-        floor_mask(points, UP, min_spread=GUESSED_FLOOR_SPREAD[0], voxel=VOXEL), mask
+        floor_mask(points, UP, min_spread=ORIENT_OPTIONS.guessed_floor_spread[0], voxel=VOXEL), mask
     )
 
 
@@ -190,9 +191,13 @@ def test_refuses_a_bad_up(up) -> None:
 
 
 @pytest.mark.parametrize("length", [0.0, -0.1, float("nan"), float("inf"), True])
-def test_refuses_a_bad_voxel_or_link(length) -> None:
+def test_refuses_a_bad_voxel(length) -> None:
     points = np.random.default_rng(0).normal(size=(50, 3))
     with pytest.raises(InvalidInputError):
         floor_mask(points, UP, voxel=length)
-    with pytest.raises(InvalidInputError):
-        detached_mask(points, link=length)
+
+
+@pytest.mark.parametrize("length", [0.0, -0.1, float("nan"), float("inf")])
+def test_refuses_a_bad_link(length) -> None:
+    with pytest.raises(ValidationError, match="link_m"):
+        CleanupOptions(link_m=length)

@@ -9,10 +9,11 @@ import pytest
 
 from catalign.features.extractor import Described
 from catalign.frames import MODEL_UP
+from catalign.geometry.levelling import even_headings
 from catalign.geometry.se3 import axis_angle, rotation_error_deg
 from catalign.registration.prepare.validation import CheckedCloud
 from catalign.registration.results import Orientation
-from catalign.registration.stages.describe import describe, even_headings, rotations_of
+from catalign.registration.stages.describe import describe, rotations_of
 
 
 class RecordingExtractor:

@@ -24,7 +24,8 @@ SEEDS = (2, 8, 11)
 # FPFH matches are mostly wrong: match more query key points and every model key point, and
 # give RANSAC the budget the classic recipe gets
 FPFH_CONFIG = EngineConfig(
-    ransac_factor=1.5, ransac_iterations=100_000, match_points=1_000, model_points=None
+    ransac={"factor": 1.5, "iterations": 100_000},
+    match={"query_points": 1_000, "model_points": None},
 )
 
 
@@ -104,7 +105,7 @@ def test_an_up_a_few_degrees_off_is_trusted_unless_snapping_is_asked(engine: Eng
     snapping = Engine(
         engine.extractor,
         engine.library,
-        config=engine.config.model_copy(update={"up_snap_deg": 10.0}),
+        config=engine.config.replaced(orient={"up_snap_deg": 10.0}),
     )
     snapped = snapping.register(points, up=off, seed=1)
     assert np.degrees(np.arccos(np.clip(snapped.up @ np.array([0, 0, 1.0]), -1.0, 1.0))) < 1.5
@@ -139,12 +140,12 @@ def test_with_up_the_sweep_poses_a_library_shape_that_its_matches_cannot(engine:
     rotation = axis_angle(np.array([0, 0, 1.0]), 2.0) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
     pose = make_pose(rotation, np.array([-0.6, 1.2, 0.45]))
     points, up = _observe(11, pose), np.array([0, 0, 1.0])
-    starved = FPFH_CONFIG.model_copy(update={"pair_draws": 1, "heading_draws": 1})
+    starved = FPFH_CONFIG.replaced(ransac={"pair_draws": 1}, match={"heading_draws": 1})
     result = Engine(engine.extractor, shuffled, config=starved).register(points, up=up)
     assert result.model_id == "proc-0011"
     assert rotation_error_deg(result.pose[:3, :3], rotation) < 2.0
     assert np.linalg.norm(result.pose[:3, 3] - pose[:3, 3]) < 0.01
-    unswept = starved.model_copy(update={"sweep_models": 0})
+    unswept = starved.replaced(sweep={"models": 0})
     with pytest.raises(DegenerateInputError, match="no pose fits"):
         Engine(engine.extractor, shuffled, config=unswept).register(points, up=up)
 
@@ -159,13 +160,15 @@ def test_a_chair_outside_the_library_is_answered_from_matches_not_swept(engine: 
     rotation = axis_angle(np.array([0, 0, 1.0]), 0.4) @ axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
     pose = make_pose(rotation, np.array([0.2, 0.3, 0.45]))
     points, up = transform(procedural_shape(8).scaled(0.85).points, pose), np.array([0, 0, 1.0])
-    starved = FPFH_CONFIG.model_copy(update={"pair_draws": 100, "heading_draws": 1})
+    starved = FPFH_CONFIG.replaced(ransac={"pair_draws": 100}, match={"heading_draws": 1})
     shuffled = Engine(engine.extractor, _shuffled(engine.library), config=starved)
     view = QueryView(points, np.zeros((len(points), 1), dtype=np.float32))
-    swept = shuffled.sweeper.poses(shuffled.library.ids, points[::50], leveller(up), (), view)
+    swept = shuffled.searcher.sweeper.poses(
+        shuffled.library.ids, points[::50], leveller(up), (), view
+    )
     assert swept  # the sweep does pose the shrunk chair on library models
     result = shuffled.register(points, up=up, seed=0)
-    assert result.fitness < engine.config.exact_fitness  # another instance
+    assert result.fitness < engine.config.decision.exact_fitness  # another instance
     observed, model = result.correspondences
     assert len(observed) == len(model) > 0
 
@@ -196,7 +199,7 @@ def test_a_chair_of_another_size_is_centred_with_a_rigid_pose(engine: Engine, se
     )
     refitting = Engine(engine.extractor, own, config=FPFH_CONFIG)
     rigid_only = Engine(
-        engine.extractor, own, config=FPFH_CONFIG.model_copy(update={"exact_fitness": 0.0})
+        engine.extractor, own, config=FPFH_CONFIG.replaced(decision={"exact_fitness": 0.0})
     )
     observed = procedural_shape(seed).scaled(1.15)
     pose = make_pose(
@@ -247,7 +250,7 @@ def test_matching_a_subset_of_model_key_points_still_recovers_the_pose(engine: E
     several times the share that chance would put next to their observed partners do (FPFH
     matches are mostly wrong: about 5% land there uncapped, under 1% for shuffled pairs)."""
     cap = engine.library["proc-0008"].num_keypoints // 2
-    config = FPFH_CONFIG.model_copy(update={"model_points": cap})
+    config = FPFH_CONFIG.replaced(match={"model_points": cap})
     capped = Engine(engine.extractor, engine.library, config=config)
     pose = make_pose(axis_angle(np.array([0.2, 1.0, 0.1]), 1.1), np.array([0.4, -0.2, 1.3]))
     result = capped.register(_observe(8, pose), seed=0)
@@ -264,7 +267,7 @@ def test_the_configuration_is_the_engines_one_source_of_options(engine: Engine) 
     assert plain.config == EngineConfig()
     assert plain.headings == engine.extractor.headings == 1  # from the extractor
     assert plain.ransac_distance == pytest.approx(2.0 * engine.extractor.voxel_size)
-    eight = Engine(engine.extractor, engine.library, config=EngineConfig(headings=8))
+    eight = Engine(engine.extractor, engine.library, config=EngineConfig(orient={"headings": 8}))
     assert eight.headings == 8
     assert engine.ransac_distance == pytest.approx(1.5 * engine.extractor.voxel_size)
 

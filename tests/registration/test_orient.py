@@ -9,11 +9,19 @@ from catalign.data.camera import camera_at
 from catalign.data.shapes import Shape
 from catalign.data.views import Floor, render_view, upright_rotation
 from catalign.features.orientation import Proposal
+from catalign.geometry.levelling import even_headings
 from catalign.geometry.se3 import axis_angle, make_pose
 from catalign.registration.prepare.floor import floor_mask
-from catalign.registration.prepare.orient import Oriented, orient, snap_to_plane
+from catalign.registration.prepare.orient import (
+    Oriented,
+    OrientOptions,
+    SearchedUp,
+    orient,
+    snap_to_plane,
+)
+from catalign.registration.prepare.validation import MIN_VOXELS
 from catalign.registration.results import Orientation
-from catalign.registration.stages.describe import even_headings, rotations_of
+from catalign.registration.stages.describe import rotations_of
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 VOXEL = 0.025
@@ -59,18 +67,25 @@ def view(shape: Shape, floor: Floor | None = None) -> np.ndarray:
 
 
 def oriented_by(
-    points: np.ndarray, up: np.ndarray | None, proposer: FixedProposer | None, **options: float
+    points: np.ndarray,
+    up: np.ndarray | None,
+    proposer: FixedProposer | None,
+    *,
+    min_voxels: int = MIN_VOXELS,
+    guessed_ups: tuple[SearchedUp, ...] = (),
+    **options: float,
 ) -> Oriented:
-    """``orient`` with the engine's counts: 8 extractor headings, 3 proposed ups, 2 headings."""
+    """``orient`` with the engine's counts (8 extractor headings, 3 proposed ups, 2 headings)
+    and its ``options`` but those given."""
     return orient(
         points,
         up,
         proposer,
         headings=8,
-        up_proposals=3,
-        heading_proposals=2,
         voxel=VOXEL,
-        **options,
+        min_voxels=min_voxels,
+        options=OrientOptions(up_proposals=3, heading_proposals=2, **options),
+        guessed_ups=guessed_ups,
     )
 
 
@@ -224,5 +239,5 @@ def test_a_given_up_is_snapped_to_the_seat_only_when_asked(box_chair: Shape) -> 
     off = tilted(WORLD_UP, 6.0)  # an imprecise IMU
     [kept] = oriented_by(points, off, None).orientations
     assert angle_deg(kept.up, off) < 1e-6
-    [snapped] = oriented_by(points, off, None, given_snap_deg=10.0).orientations
+    [snapped] = oriented_by(points, off, None, up_snap_deg=10.0).orientations
     assert snapped.given and angle_deg(snapped.up, WORLD_UP) < 1.5

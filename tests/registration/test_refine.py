@@ -197,8 +197,8 @@ def test_the_engines_icp_converges_from_10_degrees_and_5_cm_off(
     refiner = Refiner(
         make_library(make_entry("chair", chair.points)),
         distance=0.025,
-        icp_iterations=config.icp_iterations,
-        icp_points=config.icp_points,
+        icp_iterations=config.icp.iterations,
+        icp_points=config.icp.points,
     )
     rng = np.random.default_rng(seed)
     camera = camera_at(POSE[:3, 3], 1.8, 30.0, rng.uniform(0.0, 360.0))

@@ -7,7 +7,8 @@ import pytest
 
 from catalign.geometry.levelling import leveller, yaw_rotations
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.registration.config import EngineConfig, from_config
+from catalign.registration.assembly import build_sweeper
+from catalign.registration.config import EngineConfig
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.surface_checks import SurfaceCheck
 from catalign.registration.stages.sweep import Sweeper, closeness_table, sweep_model, sweep_yaws
@@ -101,8 +102,8 @@ def test_a_view_larger_than_the_model_at_every_yaw_gets_no_pose(chair, chair_poi
 
 def _sweeper(library, **options) -> Sweeper:
     """The engine's sweeper (its options at their defaults but for ``options``)."""
-    config = EngineConfig(**({"sweep_models": 2} | options))
-    return from_config(Sweeper, config, library, distance=DISTANCE)
+    config = EngineConfig(sweep={"models": 2} | options)
+    return build_sweeper(config, library, distance=DISTANCE)
 
 
 def test_the_sweepers_poses_are_model_to_observation_poses(
@@ -129,7 +130,7 @@ def test_the_sweepers_poses_are_model_to_observation_poses(
     best = chair_poses[int(np.argmax(scores))].transform
     assert rotation_error_deg(best[:3, :3], pose[:3, :3]) <= 2.5 + 1e-6
     assert np.linalg.norm(best[:3, 3] - pose[:3, 3]) < 0.02
-    assert _sweeper(library, sweep_models=0).poses(["chair"], probes, turn, (), query) == []
+    assert _sweeper(library, models=0).poses(["chair"], probes, turn, (), query) == []
 
 
 def test_the_yaws_reach_only_the_span_around_the_proposed_heading(

@@ -219,7 +219,7 @@ class RegistrationService:
         manifest = served.library.manifest
         extractor = served.extractor
         config = served_config(self.settings.engine, manifest.engine)
-        headings = extractor.headings if config.headings is None else config.headings
+        headings = config.orient.headings or extractor.headings
         return InfoResponse(
             version=catalign.__version__,
             model_card=extractor.card,
@@ -233,7 +233,9 @@ class RegistrationService:
             ),
             voxel_size=extractor.voxel_size,
             headings=headings,
-            engine=config.model_copy(update={"headings": headings}),
+            engine=config.model_copy(
+                update={"orient": config.orient.model_copy(update={"headings": headings})}
+            ),
             versions=Versions(
                 python=platform.python_version(),
                 torch=str(torch.__version__),

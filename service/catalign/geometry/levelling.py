@@ -51,3 +51,8 @@ def level_pose(pose: np.ndarray, turn: np.ndarray, pivot: np.ndarray) -> np.ndar
     upright[:3, :3] = rotation
     upright[:3, 3] = pose[:3, :3] @ pivot + pose[:3, 3] - rotation @ pivot
     return upright
+
+
+def even_headings(count: int) -> tuple[float, ...]:
+    """``count`` headings evenly spaced over the full turn, from zero."""
+    return tuple(2 * np.pi * k / count for k in range(count))

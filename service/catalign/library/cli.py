@@ -107,14 +107,11 @@ def configure(
     """Set the engine options a server runs this library with (CATALIGN_ENGINE__* variables
     and `catalign serve --engine` still override them)."""
     from catalign.library.index import configure as configure_library
-    from catalign.registration.config import EngineConfig, parse_options, served_config
-
-    def check(options: dict[str, Any]) -> None:
-        served_config(EngineConfig(), options)
+    from catalign.registration.config import parse_options, stored_options
 
     with exit_on_error():
         options = parse_options(engine or ()).model_dump(exclude_unset=True)
-        manifest = configure_library(library, options, clear=clear, check=check)
+        manifest = configure_library(library, options, clear=clear, combine=stored_options)
     typer.echo(f"{library}: engine options {_options(manifest.engine)}")
 
 
@@ -143,5 +140,12 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
     )
 
 
-def _options(engine: dict) -> str:
-    return " ".join(f"{k}={v}" for k, v in sorted(engine.items())) or "(the defaults)"
+def _options(engine: dict[str, Any], prefix: str = "") -> str:
+    """``decision.alternatives=0 top_k=2``: the options a library sets, by their dotted names."""
+    parts = [
+        _options(value, f"{prefix}{name}.")
+        if isinstance(value, dict)
+        else f"{prefix}{name}={value}"
+        for name, value in sorted(engine.items())
+    ]
+    return " ".join(parts) or ("" if prefix else "(the defaults)")

@@ -180,18 +180,19 @@ def configure(
     options: Mapping[str, Any],
     *,
     clear: bool = False,
-    check: Callable[[dict[str, Any]], object] | None = None,
+    combine: Callable[[dict[str, Any], Mapping[str, Any]], dict[str, Any]] | None = None,
 ) -> Manifest:
     """Set engine options the library is served with (``clear``: drop the ones it had first);
-    the entries are untouched. The library stores the options as plain data; ``check``, given
-    the options it would store, refuses bad ones before anything is written (the command line
-    checks them as the engine's configuration, which this layer does not import)."""
+    the entries are untouched. The library stores the options as plain data; ``combine``, given
+    the options it has and the new ones, returns those to store or refuses bad ones before
+    anything is written (the command line merges and checks them as the engine's
+    configuration, which this layer does not import; without it the new ones replace the old
+    key by key)."""
     library_dir = Path(library_dir)
     with writer_lock(library_dir):
         current = read_manifest(library_dir)
-        engine = ({} if clear else current.engine) | dict(options)
-        if check is not None:
-            check(engine)  # refuse a bad option now, not at serve time
+        had = {} if clear else dict(current.engine)
+        engine = had | dict(options) if combine is None else combine(had, options)
         manifest = dataclasses.replace(current, updated=utc_now(), engine=engine)
         commit(library_dir, manifest)
     logger.info("library %s served with engine options %s", library_dir, engine or "(defaults)")

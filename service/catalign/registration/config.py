@@ -1,103 +1,60 @@
-"""The engine's configuration: one typed, frozen model of every knob of every stage.
+"""The engine's configuration: one typed, frozen tree of every option of every stage.
 
-:class:`EngineConfig` is validated once, where it enters (the service's settings, a benchmark's
-command line, a test), and the engine turns it into plain keyword arguments of its stages, so
-no configuration object travels below :class:`~catalign.registration.engine.Engine`. It imports
-nothing heavy (no torch, no open3d): the API's settings embed it, and ``/info`` reports it.
-:func:`from_config` builds a stage whose options are named as the configuration's fields.
-Each field's docstring is its documentation (also in the JSON schema); an unknown field is
-refused, so a typo in ``CATALIGN_ENGINE__<FIELD>`` or a benchmark's ``name=value`` fails loudly.
+:class:`EngineConfig` gathers the option groups (:class:`~catalign.options.OptionGroup`), one
+per stage: ``engine.input``, ``engine.orient``, ``engine.floor``, ``engine.cleanup``,
+``engine.match``, ``engine.ransac``, ``engine.sweep``, ``engine.verify``, ``engine.icp`` and
+``engine.decision``, beside the two options every deployment sets, ``top_k`` and
+``model_cache``. The clean-up stages declare their groups beside their code
+(:mod:`~catalign.registration.prepare.floor`, :mod:`~catalign.registration.prepare.detached`,
+:mod:`~catalign.registration.prepare.orient`) and take them whole; the others' are here, and
+:mod:`~catalign.registration.assembly` turns them into the stages' keyword arguments.
+
+It is validated once, where it enters: the service's settings (``CATALIGN_ENGINE__SWEEP__MODELS``,
+``CATALIGN_ENGINE__TOP_K``), the command line's and the benchmarks' ``name=value`` options
+(``sweep.models=0``), the library's manifest, a test. Each field's docstring is its
+documentation (also in the JSON schema ``/info`` reports); an unknown field is refused, so a
+typo fails loudly. The flat names of earlier releases (``sweep_models``) are still read, and
+mapped onto the tree (:data:`FLAT_NAMES`), so that libraries configured then keep working. It
+imports nothing heavy (no torch, no open3d): the API's settings embed it.
 """
 
 from __future__ import annotations
 
-import inspect
-from collections.abc import Callable, Iterable, Mapping
-from typing import Any, TypeVar
+from collections.abc import Iterable, Mapping
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from catalign.errors import ConfigError
+from catalign.options import OptionGroup, one_line_descriptions
+from catalign.registration.prepare.detached import CleanupOptions
+from catalign.registration.prepare.floor import FloorOptions
+from catalign.registration.prepare.orient import OrientOptions
 from catalign.registration.prepare.validation import FINE_CELLS, MIN_VOXELS
 
-Stage = TypeVar("Stage")
 
+class InputOptions(OptionGroup):
+    """What a query must hold and how it is fed to the network (``engine.input``)."""
 
-def _one_line_descriptions(schema: dict[str, Any]) -> None:
-    """Docstrings wrap at the source's line length; the JSON schema (``/info``,
-    ``openapi.yaml``) gets each as one line."""
-    for part in [schema, *schema.get("properties", {}).values()]:
-        if "description" in part:
-            part["description"] = " ".join(part["description"].split())
-
-
-class EngineConfig(BaseModel):
-    """Every option of the query engine; the defaults are the measured ones
-    (``bench/tradeoff.py`` compares alternatives on the evaluation's cases)."""
-
-    model_config = ConfigDict(
-        extra="forbid",
-        frozen=True,
-        use_attribute_docstrings=True,
-        json_schema_extra=_one_line_descriptions,
-    )
-
-    headings: int | None = Field(default=None, ge=1)
-    """Headings the query is described at (None: the extractor's, 8 for ``yaw-bin`` models,
-    else 1)."""
-    top_k: int | None = Field(default=10, ge=1)
-    """Default shortlist size: library models registered per query (None: every entry)."""
-    ransac_factor: float = Field(default=2.0, gt=0, le=3.0)
-    """RANSAC and verification inlier distance, in voxels; at most 3, where the library's
-    distance grids (``catalign.geometry.distance_grid.TRUNCATION_VOXELS``) stop."""
-    icp_factor: float = Field(default=1.0, gt=0)
-    """ICP inlier distance, in voxels."""
-    icp_iterations: int = Field(default=30, ge=1)
-    """Gauss-Newton steps of each ICP pass, at most (a pose on the wrong model, or on another
-    instance, can slide for many steps without converging)."""
-    icp_points: int | None = Field(default=600, ge=3)
-    """Query key points ICP aligns, a fixed subset (None: all); 600 measured as accurate as all
-    of them and a quarter faster (``bench/results/tradeoff-icp.md``)."""
-    up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
-    """How far the chair's up may tilt from the given ``up`` in the three-point search."""
-    up_snap_deg: float | None = Field(default=None, gt=0, le=30)
-    """With ``up`` given, snap it to the largest plane within this many degrees of it (a seat,
-    the floor), as proposed ups are: for an up known to a few degrees only (an imprecise IMU).
-    Off by default: a seat may slope a few degrees, and snapping an exact up to it costs about
-    4 of 108 *same* views within 10 degrees; an up 5 or 10 degrees off gains 4 and 17 of them
-    (docs/evaluation.md, "An imprecise up")."""
     min_points: int = Field(default=MIN_VOXELS, ge=1)
     """Occupied voxels a query needs."""
-    up_proposals: int = Field(default=3, ge=1)
-    """Without ``up``: proposed up directions the gravity-aware search runs under (the best
-    verified pose wins)."""
-    up_mass: float | None = Field(default=0.5, gt=0, le=1)
-    """Without ``up``: a further proposed up is searched at first only while the ones before
-    it hold less than this probability mass (None: always ``up_proposals``; a floor found under
-    the cloud holds it all): a confident up network then costs one up's search instead of
-    three; when the answer's confidence is below ``heading_fallback``, the query is searched
-    again under every proposed up."""
-    up_belief_power: float = Field(default=0.3, ge=0)
-    """Without ``up``: a pose's verification score is multiplied by the proposal's belief in
-    its up (probability mass) to this power (0: verification alone chooses the up)."""
-    heading_belief_power: float = Field(default=0.3, ge=0)
-    """A pose's verification score is multiplied by the heading network's belief in its
-    heading (the mass of the proposed heading within half a proposal's width of it, else the
-    mass no proposal holds) to this power (0: verification alone chooses the heading)."""
-    heading_proposals: int | None = Field(default=2, ge=1)
-    """Proposed headings the query is described at, under each up (None: every heading of
-    the extractor)."""
-    heading_mass: float | None = Field(default=0.95, gt=0, le=1)
-    """A further heading proposal is described at first only while the ones before it hold
-    less than this probability mass (None: always ``heading_proposals``): a confident heading
-    network then costs one heading's features, matching and verification instead of two; when
-    the answer's confidence is below ``heading_fallback``, the query is searched again at every
-    proposed heading. About 0.85x the time on the evaluation's *same* views and 0.97x on
-    *cross* ones, which fall back more often (``docs/benchmarks.md``)."""
-    heading_fallback: float = Field(default=0.7, ge=0, le=1)
-    """With ``heading_mass`` (or ``up_mass``): the confidence below which an answer found at
-    the confident headings (or ups) alone sends the query to a search at every proposed
-    heading under every proposed up (0: never; always without a calibrator)."""
+    fine_cells: int | None = Field(default=FINE_CELLS, ge=1)
+    """Cells per voxel edge of the grid a dense query is down-sampled to first (None:
+    never)."""
+    pass_voxels: int = Field(default=32_000, ge=1)
+    """Query voxels, over all headings, that one forward pass may describe (bounds its
+    memory)."""
+
+
+class MatchOptions(OptionGroup):
+    """Matching the query's features to a model's (``engine.match``,
+    :mod:`~catalign.registration.stages.match`)."""
+
+    query_points: int | None = Field(default=500, ge=1)
+    """Query key points that take part in matching (None: all)."""
+    model_points: int | None = Field(default=1_000, ge=1)
+    """Each model's key points that take part in matching (None: all); fewer matched points
+    measured as accurate and a third faster (``bench/tradeoff.py``)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
     models."""
@@ -106,53 +63,95 @@ class EngineConfig(BaseModel):
     heading_draws: int = Field(default=300, ge=1)
     """With ``up``: pairs the two-point search draws on each of those models to rank a
     heading."""
-    ransac_iterations: int = Field(default=5_000, ge=1)
+
+
+class RansacOptions(OptionGroup):
+    """The pose search from matches (``engine.ransac``,
+    :mod:`~catalign.registration.stages.hypothesise`)."""
+
+    factor: float = Field(default=2.0, gt=0, le=3.0)
+    """RANSAC and verification inlier distance, in voxels; at most 3, where the library's
+    distance grids (``catalign.geometry.distance_grid.TRUNCATION_VOXELS``) stop."""
+    iterations: int = Field(default=5_000, ge=1)
     """Cap on draws of the three-point RANSAC (without ``up``, or with ``estimate_scale``)."""
     pair_draws: int = Field(default=3_000, ge=1)
     """Pairs the two-point search draws per candidate and heading."""
     poses_per_view: int = Field(default=8, ge=1)
     """Distinct poses the two-point search keeps per candidate and heading."""
+    up_tolerance_deg: float = Field(default=30.0, gt=0, le=180)
+    """How far the chair's up may tilt from the given ``up`` in the three-point search."""
+
+
+class SweepOptions(OptionGroup):
+    """The upright sweep (``engine.sweep``, :mod:`~catalign.registration.stages.sweep`)."""
+
+    models: int = Field(default=10, ge=0)
+    """With an up: the best shortlisted models whose poses are also searched from their
+    surfaces alone, every yaw and shift on a grid (:mod:`~catalign.registration.stages.sweep`; 0:
+    none): the observed chair's own CAD may match too poorly to be posed by its matches."""
+    yaw_deg: float = Field(default=5.0, gt=0, le=90)
+    """Step of the sweep's yaws (degrees)."""
+    span_deg: float | None = Field(default=30.0, ge=0, le=180)
+    """How far either side of each described heading the sweep's yaws reach (degrees; None:
+    the whole turn)."""
+    step: int = Field(default=2, ge=1)
+    """Step of the sweep's shifts, in cells of the library's distance grids (half a voxel
+    each)."""
+    probes: int = Field(default=64, ge=3)
+    """Query key points the sweep reads, of the probes verification uses."""
+    shifts: int = Field(default=512, ge=1)
+    """Most shifts the sweep tries at one yaw (the step grows for a view small in its model's
+    box)."""
+    poses: int = Field(default=2, ge=1)
+    """Distinct poses of each swept model that go on to verification."""
+    refine: int = Field(default=2, ge=0)
+    """When no refined matched pose fits exactly: the best distinct swept answers that get
+    ICP; those that then fit exactly are answers, the other swept poses are dropped."""
+
+
+class VerifyOptions(OptionGroup):
+    """Verifying poses and weighing them by the beliefs in their orientation (``engine.verify``,
+    :mod:`~catalign.registration.stages.verify`)."""
+
     probe_points: int = Field(default=384, ge=1)
     """Query key points used to rank headings and to verify poses."""
     coverage_points: int = Field(default=1_500, ge=1)
     """Model surface points for the coverage check (and the model's extent in the category
     fit)."""
-    match_points: int | None = Field(default=500, ge=1)
-    """Query key points that take part in matching (None: all)."""
-    model_points: int | None = Field(default=1_000, ge=1)
-    """Each model's key points that take part in matching (None: all); fewer matched points
-    measured as accurate and a third faster (``bench/tradeoff.py``)."""
     coverage_cell: float = Field(default=0.5, gt=0, le=2.0)
     """Edge of the query's coverage grid, in voxels: its distance transform, built once per
     request, costs with the grid's cell count, and a posed point's coverage can be missed
     only within about a cell of the inlier distance. 0.75 saves a few milliseconds and lost
     a case at a few thresholds of the evaluation's three seeds."""
-    verify_top: int = Field(default=32, ge=1)
+    top: int = Field(default=32, ge=1)
     """Poses, best by the surface check, that get the coverage check."""
-    sweep_models: int = Field(default=10, ge=0)
-    """With an up: the best shortlisted models whose poses are also searched from their
-    surfaces alone, every yaw and shift on a grid (:mod:`~catalign.registration.stages.sweep`; 0:
-    none): the observed chair's own CAD may match too poorly to be posed by its matches."""
-    sweep_yaw_deg: float = Field(default=5.0, gt=0, le=90)
-    """Step of the sweep's yaws (degrees)."""
-    sweep_span_deg: float | None = Field(default=30.0, ge=0, le=180)
-    """How far either side of each described heading the sweep's yaws reach (degrees; None:
-    the whole turn)."""
-    sweep_step: int = Field(default=2, ge=1)
-    """Step of the sweep's shifts, in cells of the library's distance grids (half a voxel
-    each)."""
-    sweep_probes: int = Field(default=64, ge=3)
-    """Query key points the sweep reads, of the probes verification uses."""
-    sweep_shifts: int = Field(default=512, ge=1)
-    """Most shifts the sweep tries at one yaw (the step grows for a view small in its model's
-    box)."""
-    sweep_poses: int = Field(default=2, ge=1)
-    """Distinct poses of each swept model that go on to verification."""
-    sweep_refine: int = Field(default=2, ge=0)
-    """When no refined matched pose fits exactly: the best distinct swept answers that get
-    ICP; those that then fit exactly are answers, the other swept poses are dropped."""
-    refine: int = Field(default=3, ge=1)
+    up_belief_power: float = Field(default=0.3, ge=0)
+    """Without ``up``: a pose's verification score is multiplied by the proposal's belief in
+    its up (probability mass) to this power (0: verification alone chooses the up)."""
+    heading_belief_power: float = Field(default=0.3, ge=0)
+    """A pose's verification score is multiplied by the heading network's belief in its
+    heading (the mass of the proposed heading within half a proposal's width of it, else the
+    mass no proposal holds) to this power (0: verification alone chooses the heading)."""
+
+
+class IcpOptions(OptionGroup):
+    """Refining poses by ICP (``engine.icp``, :mod:`~catalign.registration.stages.refine`)."""
+
+    factor: float = Field(default=1.0, gt=0)
+    """ICP inlier distance, in voxels."""
+    iterations: int = Field(default=30, ge=1)
+    """Gauss-Newton steps of each ICP pass, at most (a pose on the wrong model, or on another
+    instance, can slide for many steps without converging)."""
+    points: int | None = Field(default=600, ge=3)
+    """Query key points ICP aligns, a fixed subset (None: all); 600 measured as accurate as all
+    of them and a quarter faster (``bench/results/tradeoff-icp.md``)."""
+    poses: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
+
+
+class DecisionOptions(OptionGroup):
+    """Choosing the answer (``engine.decision``, :mod:`~catalign.registration.decision.rules`)."""
+
     alternatives: int = Field(default=3, ge=0)
     """Other distinct answers (another model, or the same one turned more than 30 degrees)
     returned beside the winner; the best pose of each also gets ICP."""
@@ -171,37 +170,152 @@ class EngineConfig(BaseModel):
     refined too; an answer that fits surely beats one that fits only exactly. At
     ``exact_fitness`` or below, every exact fit is sure. 0.95 gained 2 *same* views within 10
     degrees with ``up`` and without (of 108, seeds 0 and 1), lost none (seed 3 too)."""
-    fine_cells: int | None = Field(default=FINE_CELLS, ge=1)
-    """Cells per voxel edge of the grid a dense query is down-sampled to first (None:
-    never)."""
-    pass_voxels: int = Field(default=32_000, ge=1)
-    """Query voxels, over all headings, that one forward pass may describe (bounds its
-    memory)."""
+    heading_fallback: float = Field(default=0.7, ge=0, le=1)
+    """With ``heading_mass`` (or ``up_mass``): the confidence below which an answer found at
+    the confident headings (or ups) alone sends the query to a search at every proposed
+    heading under every proposed up (0: never; always without a calibrator)."""
+
+
+# The flat option names of earlier releases, and where each now lives in the tree.
+FLAT_NAMES: dict[str, tuple[str, str]] = {
+    "headings": ("orient", "headings"),
+    "up_proposals": ("orient", "up_proposals"),
+    "up_mass": ("orient", "up_mass"),
+    "up_snap_deg": ("orient", "up_snap_deg"),
+    "heading_proposals": ("orient", "heading_proposals"),
+    "heading_mass": ("orient", "heading_mass"),
+    "min_points": ("input", "min_points"),
+    "fine_cells": ("input", "fine_cells"),
+    "pass_voxels": ("input", "pass_voxels"),
+    "match_points": ("match", "query_points"),
+    "model_points": ("match", "model_points"),
+    "keep_headings": ("match", "keep_headings"),
+    "heading_models": ("match", "heading_models"),
+    "heading_draws": ("match", "heading_draws"),
+    "ransac_factor": ("ransac", "factor"),
+    "ransac_iterations": ("ransac", "iterations"),
+    "pair_draws": ("ransac", "pair_draws"),
+    "poses_per_view": ("ransac", "poses_per_view"),
+    "up_tolerance_deg": ("ransac", "up_tolerance_deg"),
+    "sweep_models": ("sweep", "models"),
+    "sweep_yaw_deg": ("sweep", "yaw_deg"),
+    "sweep_span_deg": ("sweep", "span_deg"),
+    "sweep_step": ("sweep", "step"),
+    "sweep_probes": ("sweep", "probes"),
+    "sweep_shifts": ("sweep", "shifts"),
+    "sweep_poses": ("sweep", "poses"),
+    "sweep_refine": ("sweep", "refine"),
+    "probe_points": ("verify", "probe_points"),
+    "coverage_points": ("verify", "coverage_points"),
+    "coverage_cell": ("verify", "coverage_cell"),
+    "verify_top": ("verify", "top"),
+    "up_belief_power": ("verify", "up_belief_power"),
+    "heading_belief_power": ("verify", "heading_belief_power"),
+    "icp_factor": ("icp", "factor"),
+    "icp_iterations": ("icp", "iterations"),
+    "icp_points": ("icp", "points"),
+    "refine": ("icp", "poses"),
+    "alternatives": ("decision", "alternatives"),
+    "confidence_margin": ("decision", "confidence_margin"),
+    "exact_fitness": ("decision", "exact_fitness"),
+    "sure_fitness": ("decision", "sure_fitness"),
+    "heading_fallback": ("decision", "heading_fallback"),
+}
+
+
+class EngineConfig(BaseModel):
+    """Every option of the query engine, as a tree of groups; the defaults are the measured
+    ones (``bench/tradeoff.py`` compares alternatives on the evaluation's cases)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        frozen=True,
+        use_attribute_docstrings=True,
+        json_schema_extra=one_line_descriptions,
+    )
+
+    top_k: int | None = Field(default=10, ge=1)
+    """Default shortlist size: library models registered per query (None: every entry)."""
     model_cache: int | None = Field(default=256, ge=1)
     """Models whose pieces each stage keeps once computed (matching subset, surface check, ICP
     surface: about 1.1 MB a model), the least recently used dropped first (None: every model
     asked about; bounds a worker's memory on a large library)."""
+    input: InputOptions = InputOptions()
+    """What a query must hold and how it is fed to the network."""
+    orient: OrientOptions = OrientOptions()
+    """Which ways up and which headings the query is searched at."""
+    floor: FloorOptions = FloorOptions()
+    """Finding the floor under the object, set aside before the features."""
+    cleanup: CleanupOptions = CleanupOptions()
+    """Finding small clusters detached from the object, set aside before the features."""
+    match: MatchOptions = MatchOptions()
+    """Matching features."""
+    ransac: RansacOptions = RansacOptions()
+    """The pose search from matches."""
+    sweep: SweepOptions = SweepOptions()
+    """The upright sweep."""
+    verify: VerifyOptions = VerifyOptions()
+    """Verification."""
+    icp: IcpOptions = IcpOptions()
+    """Refinement."""
+    decision: DecisionOptions = DecisionOptions()
+    """The choice of the answer."""
+
+    def replaced(self, **options: Any) -> EngineConfig:
+        """A copy with ``options`` changed and validated (unlike ``model_copy``): groups as
+        mappings of their changed fields (``sweep={"models": 0}``) or flat names of earlier
+        releases (``sweep_models=0``)."""
+        return _validated(merged(self.model_dump(exclude_unset=True), options))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _tree_from_flat_names(cls, data: Any) -> Any:
+        """Options under their flat names of earlier releases, moved to their place in the
+        tree (a group given as a model is kept, its set fields only)."""
+        if not isinstance(data, Mapping) or not FLAT_NAMES.keys() & data.keys():
+            return data
+        tree = dict(data)
+        for name in FLAT_NAMES.keys() & data.keys():
+            group, field = FLAT_NAMES[name]
+            given = tree.get(group, {})
+            if isinstance(given, BaseModel):
+                given = given.model_dump(exclude_unset=True)
+            tree[group] = {**given, field: tree.pop(name)}
+        return tree
+
+
+def option_names() -> list[str]:
+    """Every option's dotted name (``sweep.models``), in the tree's order."""
+    names = []
+    for name, info in EngineConfig.model_fields.items():
+        group = info.annotation
+        if isinstance(group, type) and issubclass(group, OptionGroup):
+            names += [f"{name}.{field}" for field in group.model_fields]
+        else:
+            names.append(name)
+    return names
 
 
 def parse_options(options: Iterable[str], base: EngineConfig | None = None) -> EngineConfig:
-    """``base`` (the defaults when None) with the fields named in ``name=value`` options
-    replaced (``none`` for None, numbers as numbers): what the CLI's ``--engine`` and
-    ``bench/tradeoff.py`` take. The fields counted as set are ``base``'s and the options'. An
-    unknown field or a bad value raises :class:`ConfigError` saying which."""
+    """``base`` (the defaults when None) with the options named in ``name=value`` replaced
+    (``sweep.models=0``; a flat name of earlier releases works too; ``none`` for None, numbers
+    as numbers): what the CLI's ``--engine`` and ``bench/tradeoff.py`` take. The fields counted
+    as set are ``base``'s and the options'. An unknown option or a bad value raises
+    :class:`ConfigError` saying which."""
     fields: dict[str, Any] = {}
     for option in options:
         name, equals, value = (part.strip() for part in option.partition("="))
         if not name or not equals or not value:
-            raise ConfigError(f"engine option {option!r} is not NAME=VALUE (e.g. top_k=5)")
-        if value.lower() == "none":
-            fields[name] = None
-            continue
-        try:
-            number = float(value)
-        except ValueError:
-            raise ConfigError(f"engine option {option!r}: {value!r} is not a number") from None
-        fields[name] = int(number) if number.is_integer() else number
-    return _validated((base or EngineConfig()).model_dump(exclude_unset=True) | fields)
+            raise ConfigError(f"engine option {option!r} is not NAME=VALUE (e.g. sweep.models=0)")
+        parsed: Any = None
+        if value.lower() != "none":
+            try:
+                number = float(value)
+            except ValueError:
+                raise ConfigError(f"engine option {option!r}: {value!r} is not a number") from None
+            parsed = int(number) if number.is_integer() else number
+        fields = merged(fields, _nested(name.split("."), parsed))
+    return _validated(merged((base or EngineConfig()).model_dump(exclude_unset=True), fields))
 
 
 def served_config(service: EngineConfig, library: Mapping[str, Any]) -> EngineConfig:
@@ -209,34 +323,49 @@ def served_config(service: EngineConfig, library: Mapping[str, Any]) -> EngineCo
     ``engine``), overridden by the fields the service sets (``CATALIGN_ENGINE__*``, then
     ``--engine``); the defaults for the rest. A bad library option raises
     :class:`ConfigError` saying which."""
-    return _validated(dict(library) | service.model_dump(exclude_unset=True))
+    own = _validated(dict(library)).model_dump(exclude_unset=True)
+    return _validated(merged(own, service.model_dump(exclude_unset=True)))
 
 
-def _validated(fields: dict[str, Any]) -> EngineConfig:
+def stored_options(current: Mapping[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    """A library's options (its manifest's ``engine``) with ``changes`` applied, as the tree
+    of the fields set: flat names of earlier releases moved into it, groups merged field by
+    field, everything validated (:class:`ConfigError` saying what is wrong)."""
+    own = _validated(dict(current)).model_dump(exclude_unset=True)
+    return _validated(merged(own, changes)).model_dump(exclude_unset=True)
+
+
+def merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over``'s values, group by group (a nested mapping is merged, not
+    replaced)."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), Mapping):
+            out[key] = merged(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _nested(path: list[str], value: Any) -> dict[str, Any]:
+    """``{"a": {"b": value}}`` for the path ``["a", "b"]``."""
+    return {path[0]: value} if len(path) == 1 else {path[0]: _nested(path[1:], value)}
+
+
+def _validated(fields: Mapping[str, Any]) -> EngineConfig:
     """``fields`` as a configuration (the others at their defaults, and not counted as set);
-    :class:`ConfigError` naming the first unknown field or bad value."""
+    :class:`ConfigError` naming the first unknown option or bad value."""
     try:
         return EngineConfig.model_validate(fields)
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(map(str, first["loc"])) or "engine"
         if first["type"] == "extra_forbidden":
-            known = ", ".join(EngineConfig.model_fields)
-            raise ConfigError(f"unknown engine option {where!r}; the options: {known}") from None
+            group = f"{first['loc'][0]}." if len(first["loc"]) > 1 else ""
+            known = [name for name in option_names() if name.startswith(group)]
+            if not group:
+                known = [name for name in EngineConfig.model_fields]
+            listed = ", ".join(known)
+            what = f"the {group[:-1]} options" if group else "the options and groups"
+            raise ConfigError(f"unknown engine option {where!r}; {what}: {listed}") from None
         raise ConfigError(f"engine option {where}: {first['msg']}") from None
-
-
-def from_config(
-    stage: Callable[..., Stage], config: EngineConfig, /, *args: Any, **given: Any
-) -> Stage:
-    """``stage(*args, **given)``, each of its other keyword-only options taken from the
-    ``config`` field of the same name. A stage names its options as the configuration does;
-    what it needs beyond them (the library, distances in metres) the caller gives. An option
-    that is neither given nor a field fails loudly (AttributeError)."""
-    options = inspect.signature(stage).parameters.values()
-    taken = {
-        option.name: getattr(config, option.name)
-        for option in options
-        if option.kind is option.KEYWORD_ONLY and option.name not in given
-    }
-    return stage(*args, **given, **taken)

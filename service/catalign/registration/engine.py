@@ -36,10 +36,10 @@ answer's ``timings_ms`` documents:
 6. the **answer**: model, pose, fit statistics, confidence, the up it was found under, the
    alternatives and each candidate's best score, moved back to the caller's frame.
 
-Every option comes from one :class:`~catalign.registration.config.EngineConfig`; the engine
-turns it into the stages' keyword arguments. Each stage keeps its own per-model caches; what
-one call computes once (poses, refinements, category fits) is in its
-:class:`~catalign.registration.stages.request.RequestCache`.
+Every option comes from one :class:`~catalign.registration.config.EngineConfig`, a tree of
+groups, one per stage; :mod:`~catalign.registration.assembly` builds the stages from it. Each
+stage keeps its own per-model caches; what one call computes once (poses, refinements, category
+fits) is in its :class:`~catalign.registration.stages.request.RequestCache`.
 """
 
 from __future__ import annotations
@@ -53,10 +53,10 @@ from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
 from catalign.library.loaded import Library
-from catalign.registration.config import EngineConfig, from_config
+from catalign.registration.assembly import assemble
+from catalign.registration.config import EngineConfig
 from catalign.registration.decision.confidence import Calibrator, find_calibrator
-from catalign.registration.decision.finish import Finisher
-from catalign.registration.decision.rules import Decision, Found, Refined, Rules, decide
+from catalign.registration.decision.rules import Decision, Found, Refined, decide
 from catalign.registration.prepare.detached import detached_mask
 from catalign.registration.prepare.orient import Oriented, orient
 from catalign.registration.prepare.validation import (
@@ -66,16 +66,10 @@ from catalign.registration.prepare.validation import (
     validate_cloud,
 )
 from catalign.registration.results import Orientation, RegistrationResult
-from catalign.registration.stages.category_fit import CategoryFitter
 from catalign.registration.stages.describe import QueryView, describe, rotations_of
-from catalign.registration.stages.hypothesise import Hypothesiser
-from catalign.registration.stages.match import Matcher
-from catalign.registration.stages.refine import Refiner
 from catalign.registration.stages.request import RefinedPose, Request
 from catalign.registration.stages.search import Search, StageClock, query_searches
-from catalign.registration.stages.searcher import Searcher
-from catalign.registration.stages.sweep import Sweeper
-from catalign.registration.stages.verify import Scored, Verifier
+from catalign.registration.stages.verify import Scored
 
 
 class FromWeights:
@@ -130,34 +124,19 @@ class Engine:
         config = EngineConfig() if config is None else config
         voxel = extractor.voxel_size
         self.extractor, self.library, self.config = extractor, library, config
-        self.headings = extractor.headings if config.headings is None else config.headings
-        self.ransac_distance = config.ransac_factor * voxel
-        self.icp_distance = config.icp_factor * voxel
-        # The stages, each with its options from the config (from_config: same names).
-        distance, cell = self.ransac_distance, config.coverage_cell * voxel
-        self.verifier = from_config(Verifier, config, library, distance=distance, cell=cell)
-        self.matcher = from_config(Matcher, config, library, distance=distance)
-        self.sweeper = from_config(Sweeper, config, library, distance=distance)
-        self.searcher = from_config(
-            Searcher,
-            config,
-            library=library,
-            matcher=self.matcher,
-            hypothesiser=from_config(Hypothesiser, config, distance=distance),
-            sweeper=self.sweeper,
-            verifier=self.verifier,
+        headings = config.orient.headings
+        self.headings = extractor.headings if headings is None else headings
+        self.ransac_distance = config.ransac.factor * voxel
+        self.icp_distance = config.icp.factor * voxel
+        stages = assemble(
+            config, library, voxel=voxel, calibrator=_weights_calibrator(extractor, calibrator)
         )
-        self.refiner = from_config(Refiner, config, library, distance=self.icp_distance)
-        self.rules = from_config(Rules, config)
-        fitter = CategoryFitter(library, self.refiner, extent_points=config.coverage_points)
-        self.finisher = Finisher(
-            library,
-            self.refiner,
-            fitter,
-            icp_distance=self.icp_distance,
-            exact_fitness=config.exact_fitness,
-            calibrator=_weights_calibrator(extractor, calibrator),
+        self.verifier, self.searcher, self.refiner = (
+            stages.verifier,
+            stages.searcher,
+            stages.refiner,
         )
+        self.rules, self.finisher = stages.rules, stages.finisher
 
     def register(
         self,
@@ -182,8 +161,8 @@ class Engine:
                 points,
                 voxel_size=self.extractor.voxel_size,
                 up=up,
-                min_points=config.min_points,
-                fine_cells=config.fine_cells,
+                min_points=config.input.min_points,
+                fine_cells=config.input.fine_cells,
             )
             frame = cloud.frame
             up = frame.direction(up)
@@ -233,17 +212,16 @@ class Engine:
                 up,
                 self.extractor.orientation,
                 headings=self.headings,
-                up_proposals=config.up_proposals,
-                heading_proposals=config.heading_proposals,
-                heading_mass=config.heading_mass,
-                up_mass=config.up_mass,
                 voxel=voxel,
-                min_voxels=config.min_points,
+                min_voxels=config.input.min_points,
+                options=config.orient,
+                floor_options=config.floor,
                 guessed_ups=() if doubted is None else doubted.guessed_ups,
-                given_snap_deg=config.up_snap_deg,
             )
-            kept = cloud.without(oriented.floor, voxel, config.min_points, MAX_RECEIVED_VOXELS)
-            kept = kept.without(detached_mask(kept.points), voxel, config.min_points)
+            least = config.input.min_points
+            kept = cloud.without(oriented.floor, voxel, least, MAX_RECEIVED_VOXELS)
+            aside = detached_mask(kept.points, options=config.cleanup)
+            kept = kept.without(aside, voxel, least)
         return oriented, kept
 
     def _rounds(self, cloud: CheckedCloud, oriented: Oriented, request: Request) -> Round:
@@ -284,7 +262,7 @@ class Engine:
     def _weak(self, decision: Decision | None) -> bool:
         """Whether an answer (or none) is too unsure to keep without searching the other
         proposed headings and ups (``heading_fallback``)."""
-        return decision is None or decision.weak(self.config.heading_fallback)
+        return decision is None or decision.weak(self.config.decision.heading_fallback)
 
     def _described(
         self, cloud: CheckedCloud, orientations: list[Orientation], request: Request
@@ -322,7 +300,7 @@ class Engine:
         self, orientations: list[Orientation], views: list[QueryView], request: Request
     ) -> list[Search]:
         """``views`` (in the order of the orientations' rotations): one search for each."""
-        radius, probes = 2 * self.extractor.voxel_size, self.config.probe_points
+        radius, probes = 2 * self.extractor.voxel_size, self.config.verify.probe_points
         return query_searches(orientations, views, probes, request.seed, support_radius=radius)
 
     def _views(
@@ -337,7 +315,7 @@ class Engine:
                 cloud.points,
                 rotations,
                 voxels=cloud.voxels,
-                pass_voxels=self.config.pass_voxels,
+                pass_voxels=self.config.input.pass_voxels,
             )
 
     def _refined(self, item: Found, request: Request) -> Refined:

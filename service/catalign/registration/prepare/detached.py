@@ -6,7 +6,7 @@ flying pixels), so that they can be set aside before the features are computed, 
 occupied cells are grown by one cell and labelled with 26-connectivity (``scipy.ndimage``), so
 two points closer than ``link`` are always in one cluster, and two clusters farther apart than
 4/3 ``link`` along every axis (2.3 ``link`` at most) never are. The main body is the largest
-cluster by points; a cluster with fewer than :data:`SMALL_SHARE` of its points is set aside,
+cluster by points; a cluster with fewer than ``small_share`` of its points is set aside,
 never more than half of the cloud (smallest clusters first). The default ``link`` of 0.2 m is
 measured: a 320 x 240 camera at 1.2 to 3 m sees surfaces at grazing angles as rows of points
 several centimetres apart, and occlusion splits an office chair's base from its seat by 15 to
@@ -22,42 +22,53 @@ at 0.3 m in 47 %, at 0.2 m never.
 from __future__ import annotations
 
 import numpy as np
+from pydantic import Field
 from scipy import ndimage
 
-from catalign.registration.prepare.floor import MIN_POINTS, as_cloud, check_length
+from catalign.options import OptionGroup
+from catalign.registration.prepare.floor import MIN_POINTS, as_cloud
 
-# Default link (see the module docstring for the measurements behind it).
-DEFAULT_LINK_M = 0.2
 # Cells per link: cells of link/3 grown by one cell join every pair closer than link.
 CELLS_PER_LINK = 3
 # A larger grid than this is coarsened (a cell twice as large, until it fits).
 MAX_GRID_CELLS = 20_000_000
-# Clusters with fewer points than this share of the main body's are set aside.
-SMALL_SHARE = 0.1
-# Never more than this share of the cloud is set aside.
-MAX_SET_ASIDE = 0.5
 
 
-def detached_mask(points: np.ndarray, *, link: float = DEFAULT_LINK_M) -> np.ndarray:
+class CleanupOptions(OptionGroup):
+    """The clean-up's tunables (``engine.cleanup``); the measurements behind them are in the
+    module docstring."""
+
+    link_m: float = Field(default=0.2, gt=0, allow_inf_nan=False)
+    """Points closer than this are in one cluster (0.2 m: see the module docstring)."""
+    small_share: float = Field(default=0.1, ge=0, le=1)
+    """Clusters with fewer points than this share of the main body's are set aside."""
+    max_set_aside: float = Field(default=0.5, ge=0, le=1)
+    """Never more than this share of the cloud is set aside."""
+
+
+DEFAULT_OPTIONS = CleanupOptions()
+
+
+def detached_mask(points: np.ndarray, *, options: CleanupOptions = DEFAULT_OPTIONS) -> np.ndarray:
     """Boolean mask (N,) of points in small clusters detached from the main object (no point
-    within ``link`` metres of the main body).
+    within ``options.link_m`` metres of the main body).
 
-    Clusters join points closer than ``link`` (and never points more than 2.3 ``link`` apart);
-    the largest is the main body and is always kept; clusters under a tenth of its size are set
-    aside, at most half of the cloud. See the module docstring for why ``link`` is 0.2 m.
+    Clusters join points closer than the link (and never points more than 2.3 links apart); the
+    largest is the main body and is always kept; clusters under ``small_share`` of its size are
+    set aside, at most ``max_set_aside`` of the cloud. See the module docstring for why the link
+    is 0.2 m.
     """
     pts = as_cloud(points)
-    check_length(link, "link")
     if len(pts) < MIN_POINTS:
         return np.zeros(len(pts), dtype=bool)
-    labels = _clusters(pts, link)
+    labels = _clusters(pts, options.link_m)
     sizes = np.bincount(labels)
     main = int(np.argmax(sizes))
-    small = np.flatnonzero(sizes < SMALL_SHARE * sizes[main])
+    small = np.flatnonzero(sizes < options.small_share * sizes[main])
     small = small[small != main]
-    # Smallest first, while the total stays within MAX_SET_ASIDE of the cloud.
+    # Smallest first, while the total stays within max_set_aside of the cloud.
     small = small[np.argsort(sizes[small], kind="stable")]
-    fits = np.cumsum(sizes[small]) <= MAX_SET_ASIDE * len(pts)
+    fits = np.cumsum(sizes[small]) <= options.max_set_aside * len(pts)
     aside = np.zeros(len(sizes), dtype=bool)
     aside[small[fits]] = True
     return aside[labels]

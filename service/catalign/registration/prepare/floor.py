@@ -7,25 +7,25 @@ standing on it into one cluster).
 
 **Floor** (:func:`floor_mask`). Heights ``h = points @ up``; the floor, if any, is the lowest
 large flat part of the cloud. A plane is searched among the points near the bottom (within
-:data:`BAND_M` plus the tilt :data:`MAX_TILT_DEG` allows over the cloud's horizontal reach,
+``band_m`` plus the tilt ``max_tilt_deg`` allows over the cloud's horizontal reach,
 above the 0.5th percentile of ``h``) by RANSAC, with the plane's own normal within
-:data:`MAX_TILT_DEG` of ``up`` (so ``up`` may be off by 10 degrees), scoring the points within
+``max_tilt_deg`` of ``up`` (so ``up`` may be off by 10 degrees), scoring the points within
 2 cm of the plane minus four times those below it (a floor has nothing under it). It is refitted
 by least squares on its inliers three times; the tolerance is 2.5 sigma of the residuals (their
-MAD within 6 cm of the plane), at least :data:`MIN_TOL_M` and at most :data:`MAX_TOL_M`. The
+MAD within 6 cm of the plane), at least ``min_tol_m`` and at most ``max_tol_m``. The
 plane is a floor only if all of these hold:
 
-* its inliers cover a real 2D area: at least :data:`MIN_FLOOR_AREA_M2` of occupied ``voxel``
-  cells, and :data:`MIN_INTERIOR` coarse cells (three voxels) with all eight neighbours occupied
+* its inliers cover a real 2D area: at least ``min_floor_area_m2`` of occupied ``voxel``
+  cells, and ``min_interior`` coarse cells (three voxels) with all eight neighbours occupied
   too. With no floor in view, the lowest plane (leg tips, casters, a pedestal's base plate, the
   bottom edges of a sofa's or a bench's panels) covers 0.11 m2 at most in 297 of 300 ray-cast
   views of the 60 procedural chairs; a ring of floor 0.2 m wide around the chair covers 0.35 m2
   at least (180 views). The three others are the seat of a sofa or a bench at the bottom of a
   view the camera cropped (0.4 to 0.75 m2), which the third rule rejects;
-* its residual sigma is at most :data:`MAX_SIGMA_M`: a floor is flat to the sensor's noise
+* its residual sigma is at most ``max_sigma_m``: a floor is flat to the sensor's noise
   (1.3 cm at most in those views) while a cushion is not. With ``up`` off by 10 degrees, a
   sofa's cushions were once taken for a floor (sigma 3.9 cm) before this rule;
-* at most :data:`MAX_BELOW_SHARE` of its inliers (plus :data:`BELOW_SLACK` points) lie below
+* at most ``max_below_share`` of its inliers (plus ``below_slack`` points) lie below
   it: the noise of a real floor puts 0.9 % there at most, a seat has its front under it
   (3.5 % and more).
 
@@ -55,52 +55,74 @@ from dataclasses import dataclass
 from numbers import Real
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from catalign.errors import InvalidInputError
 from catalign.geometry.sampling import occupied_voxels
+from catalign.options import OptionGroup
 from catalign.registration.prepare.validation import MAX_RANGE_M
 
 # Fewer points than this: nothing to clean, the masks are all False.
 MIN_POINTS = 10
 
-# Largest angle between the floor's normal and the caller's up (up may be off by ~10 degrees).
-MAX_TILT_DEG = 12.0
-# The bottom of the cloud: this percentile of the heights (robust to a few stray points) ...
-BOTTOM_PERCENTILE = 0.5
-# ... and the band above it searched for the plane: this, plus what the tilt allows over the
-# cloud's horizontal reach (99th percentile of the distances to its median).
-BAND_M = 0.05
-# RANSAC: hypotheses, points scored, inlier distance, weight of a point below the plane.
-RANSAC_DRAWS = 256
-RANSAC_SAMPLE = 4000
-RANSAC_TOL_M = 0.02
-BELOW_WEIGHT = 4.0
-# Least-squares refits on the inliers, and the window of residuals the noise is measured in.
-REFITS = 3
-SIGMA_WINDOW_M = 0.06
-# Inlier tolerance: TOL_SIGMAS sigma of the residuals, clipped. 1.5 cm (not 2) keeps more of
-# the parts lying on the floor (0.8 % of a chair's points masked on average instead of 1.0 %,
-# sled runners 4 % instead of 6 %, a pedestal's base 5-10 % instead of 10-13 %) at no cost in
-# recall (99.1 % at the least either way).
-TOL_SIGMAS = 2.5
-MIN_TOL_M = 0.015
-MAX_TOL_M = 0.05
-# A floor: this much occupied area (voxel cells) ...
-MIN_FLOOR_AREA_M2 = 0.2
-# ... this many interior cells of three voxels (all eight neighbours occupied: not a line) ...
-COARSE_VOXELS = 3
-MIN_INTERIOR = 4
-# ... flat to the sensor's noise ...
-MAX_SIGMA_M = 0.02
-# ... and nothing much below it.
-MAX_BELOW_SHARE = 0.02
-BELOW_SLACK = 20
 
-# Floor remnants: points this low above a found floor, outside the footprint of the points
-# above them widened by this margin (see _floor_remnants).
-REMNANT_BAND_M = 0.05
-FOOTPRINT_MARGIN_M = 0.03
+class FloorOptions(OptionGroup):
+    """The floor's tunables (``engine.floor``); the measurements behind them are in the
+    module docstring."""
+
+    max_tilt_deg: float = Field(default=12.0, gt=0, lt=90)
+    """Largest angle between the floor's normal and the up it is sought under (a given up may
+    be off by about 10 degrees)."""
+    bottom_percentile: float = Field(default=0.5, ge=0, le=100)
+    """The bottom of the cloud: this percentile of the heights (robust to a few stray
+    points)."""
+    band_m: float = Field(default=0.05, gt=0)
+    """The band above the bottom searched for the plane: this, plus what the tilt allows over
+    the cloud's horizontal reach (99th percentile of the distances to its median)."""
+    ransac_draws: int = Field(default=256, ge=1)
+    """Plane hypotheses of the RANSAC."""
+    ransac_sample: int = Field(default=4000, ge=3)
+    """Points each hypothesis is scored on, at most."""
+    ransac_tol_m: float = Field(default=0.02, gt=0)
+    """Inlier distance of the RANSAC."""
+    below_weight: float = Field(default=4.0, ge=0)
+    """Weight of a point below a hypothesis, subtracted from its inliers (a floor has nothing
+    under it)."""
+    refits: int = Field(default=3, ge=1)
+    """Least-squares refits on the inliers."""
+    sigma_window_m: float = Field(default=0.06, gt=0)
+    """The window of residuals the noise (sigma, from their median) is measured in."""
+    tol_sigmas: float = Field(default=2.5, gt=0)
+    """Inlier tolerance: this many sigmas of the residuals, clipped to ``min_tol_m`` ..
+    ``max_tol_m``. 1.5 cm (not 2) at the least keeps more of the parts lying on the floor (0.8 %
+    of a chair's points masked on average instead of 1.0 %, sled runners 4 % instead of 6 %, a
+    pedestal's base 5-10 % instead of 10-13 %) at no cost in recall (99.1 % at the least
+    either way)."""
+    min_tol_m: float = Field(default=0.015, gt=0)
+    """Smallest inlier tolerance."""
+    max_tol_m: float = Field(default=0.05, gt=0)
+    """Largest inlier tolerance."""
+    min_floor_area_m2: float = Field(default=0.2, ge=0)
+    """A floor covers this much occupied area (cells of a voxel) at least."""
+    coarse_voxels: int = Field(default=3, ge=1)
+    """Edge, in voxels, of the coarse cells a floor's interior is counted in."""
+    min_interior: int = Field(default=4, ge=0)
+    """Coarse cells with all eight neighbours occupied a floor holds at least (not a line)."""
+    max_sigma_m: float = Field(default=0.02, gt=0)
+    """A floor is flat to the sensor's noise: its residuals' sigma at most this."""
+    max_below_share: float = Field(default=0.02, ge=0, le=1)
+    """Share of a floor's inliers that may lie below it (plus ``below_slack`` points)."""
+    below_slack: int = Field(default=20, ge=0)
+    """Points below a floor allowed beyond ``max_below_share``."""
+    remnant_band_m: float = Field(default=0.05, ge=0)
+    """Floor remnants: points this low above a found floor, outside the footprint of the
+    points above them (:func:`_floor_remnants`) ..."""
+    footprint_margin_m: float = Field(default=0.03, ge=0)
+    """... widened by this margin."""
+
+
+DEFAULT_OPTIONS = FloorOptions()
 
 
 @dataclass(frozen=True)
@@ -125,6 +147,7 @@ def floor_mask(
     voxel: float,
     min_spread: float = 0.0,
     min_standing: int = 0,
+    options: FloorOptions = DEFAULT_OPTIONS,
 ) -> np.ndarray:
     """Boolean mask (N,) of the points of a supporting floor: a plane perpendicular (within ~10
     deg) to the unit vector ``up`` at the bottom of the cloud along ``up``. All False when
@@ -134,14 +157,14 @@ def floor_mask(
     are masked; ``voxel`` is the cell the floor's area is measured in. With ``min_spread``, the
     floor must also spread that many times wider than what stands on it (:func:`spread`); with
     ``min_standing``, what stands on it must occupy that many ``voxel`` cells. See the module
-    docstring for the rules and their measured thresholds.
+    docstring for the rules and their measured thresholds; ``options`` holds them.
     """
     pts = as_cloud(points)
-    fit = fit_floor(pts, up, voxel=voxel)
+    fit = fit_floor(pts, up, voxel=voxel, options=options)
     if fit is None or not fit.is_floor:
         return np.zeros(len(pts), dtype=bool)
     heights = pts @ fit.normal - fit.offset
-    mask = (heights < fit.tol) | _floor_remnants(pts, heights, fit.normal)
+    mask = (heights < fit.tol) | _floor_remnants(pts, heights, fit.normal, options)
     if occupied_voxels(pts[~mask], voxel) < min_standing:
         return np.zeros(len(pts), dtype=bool)
     if min_spread > 0 and spread(pts, mask, fit.normal) < min_spread:
@@ -167,15 +190,17 @@ def spread(points: np.ndarray, floor: np.ndarray, normal: np.ndarray) -> float:
     return math.inf if areas[1] == 0 else areas[0] / areas[1]
 
 
-def _floor_remnants(points: np.ndarray, heights: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Low points (under :data:`REMNANT_BAND_M` above the floor) outside the chair's footprint:
+def _floor_remnants(
+    points: np.ndarray, heights: np.ndarray, normal: np.ndarray, options: FloorOptions
+) -> np.ndarray:
+    """Low points (under ``remnant_band_m`` above the floor) outside the chair's footprint:
     the floor's noisiest returns, beyond the plane's tolerance. Left in, a sparse ring of them
     around the chair stretches its observed extent, which the category fit centres on (in the
     evaluation's floor setting, RTE<5cm of another instance fell from 85 to 56 % before they
     were set aside). The footprint is where the points above the band stand, widened by
-    :data:`FOOTPRINT_MARGIN_M`; parts of the chair that lie low inside it (a base plate,
+    ``footprint_margin_m``; parts of the chair that lie low inside it (a base plate,
     runners) stay."""
-    low = heights < REMNANT_BAND_M
+    low = heights < options.remnant_band_m
     standing = ~low
     if not low.any() or standing.sum() < 3:
         return np.zeros(len(points), dtype=bool)
@@ -186,47 +211,50 @@ def _floor_remnants(points: np.ndarray, heights: np.ndarray, normal: np.ndarray)
     with contextlib.suppress(QhullError):  # collinear standing points: no area to stand in
         hull = footprint[ConvexHull(footprint).vertices]
         inside = Delaunay(hull).find_simplex(candidates) >= 0
-    near, _ = cKDTree(footprint).query(candidates, distance_upper_bound=FOOTPRINT_MARGIN_M)
+    near, _ = cKDTree(footprint).query(candidates, distance_upper_bound=options.footprint_margin_m)
     remnants = np.zeros(len(points), dtype=bool)
     remnants[np.flatnonzero(low)] = ~inside & ~np.isfinite(near)
     return remnants
 
 
-def fit_floor(points: np.ndarray, up: np.ndarray, *, voxel: float) -> FloorFit | None:
+def fit_floor(
+    points: np.ndarray, up: np.ndarray, *, voxel: float, options: FloorOptions = DEFAULT_OPTIONS
+) -> FloorFit | None:
     """The lowest near-horizontal plane of the cloud and whether it is a floor (None when the
     cloud is too small to hold one); :func:`floor_mask` is what most callers want."""
+    o = options
     pts = as_cloud(points)
     up = _as_up(up)
     check_length(voxel, "voxel")
     if len(pts) < MIN_POINTS:
         return None
     heights = pts @ up
-    low = float(np.percentile(heights, BOTTOM_PERCENTILE))
+    low = float(np.percentile(heights, o.bottom_percentile))
     flat = pts - np.outer(heights, up)
     reach = float(np.percentile(np.linalg.norm(flat - np.median(flat, axis=0), axis=1), 99.0))
-    bottom = pts[heights <= low + BAND_M + reach * math.tan(math.radians(MAX_TILT_DEG))]
+    bottom = pts[heights <= low + o.band_m + reach * math.tan(math.radians(o.max_tilt_deg))]
     if len(bottom) < 3:
         return None
-    normal, offset = _ransac_plane(bottom, up, np.random.default_rng(0))
-    tol, sigma = RANSAC_TOL_M, 0.0
-    for _ in range(REFITS):
+    normal, offset = _ransac_plane(bottom, up, np.random.default_rng(0), o)
+    tol, sigma = o.ransac_tol_m, 0.0
+    for _ in range(o.refits):
         near = np.abs(pts @ normal - offset) < tol
         if near.sum() < 3:
             return None
-        normal, offset = _refit(pts[near], normal, offset, up)
+        normal, offset = _refit(pts[near], normal, offset, up, o.max_tilt_deg)
         residuals = np.abs(pts @ normal - offset)
-        window = residuals[residuals < SIGMA_WINDOW_M]
+        window = residuals[residuals < o.sigma_window_m]
         sigma = 1.4826 * float(np.median(window)) if len(window) else 0.0
-        tol = float(np.clip(TOL_SIGMAS * sigma, MIN_TOL_M, MAX_TOL_M))
+        tol = float(np.clip(o.tol_sigmas * sigma, o.min_tol_m, o.max_tol_m))
     residuals = pts @ normal - offset
     inliers = np.abs(residuals) < tol
     below = int((residuals < -tol).sum())
-    area, interior = _coverage(pts[inliers] @ _plane_basis(normal).T, voxel)
+    area, interior = _coverage(pts[inliers] @ _plane_basis(normal).T, voxel, o.coarse_voxels)
     is_floor = (
-        area >= MIN_FLOOR_AREA_M2
-        and interior >= MIN_INTERIOR
-        and sigma <= MAX_SIGMA_M
-        and below <= MAX_BELOW_SHARE * inliers.sum() + BELOW_SLACK
+        area >= o.min_floor_area_m2
+        and interior >= o.min_interior
+        and sigma <= o.max_sigma_m
+        and below <= o.max_below_share * inliers.sum() + o.below_slack
     )
     return FloorFit(
         normal=normal,
@@ -294,36 +322,36 @@ def cone_planes(
 
 
 def _ransac_plane(
-    points: np.ndarray, up: np.ndarray, rng: np.random.Generator
+    points: np.ndarray, up: np.ndarray, rng: np.random.Generator, options: FloorOptions
 ) -> tuple[np.ndarray, float]:
     """The plane (unit normal towards ``up``, offset) through three of ``points`` with the best
-    score: points within RANSAC_TOL_M minus BELOW_WEIGHT times the points below it, so that
-    the lowest large plane wins over the tips of the legs and over a seat."""
-    scored = points
-    if len(scored) > RANSAC_SAMPLE:
-        scored = scored[rng.choice(len(scored), RANSAC_SAMPLE, replace=False)]
+    score: points within ``ransac_tol_m`` minus ``below_weight`` times the points below it, so
+    that the lowest large plane wins over the tips of the legs and over a seat."""
+    o, scored = options, points
+    if len(scored) > o.ransac_sample:
+        scored = scored[rng.choice(len(scored), o.ransac_sample, replace=False)]
     normals, offsets = cone_planes(
-        points, up, max_tilt_deg=MAX_TILT_DEG, draws=RANSAC_DRAWS, rng=rng
+        points, up, max_tilt_deg=o.max_tilt_deg, draws=o.ransac_draws, rng=rng
     )
     if len(normals) == 0:
         return up, float(np.percentile(points @ up, 50.0))
     residuals = scored @ normals.T - offsets
-    score = (np.abs(residuals) < RANSAC_TOL_M).sum(axis=0) - BELOW_WEIGHT * (
-        residuals < -RANSAC_TOL_M
+    score = (np.abs(residuals) < o.ransac_tol_m).sum(axis=0) - o.below_weight * (
+        residuals < -o.ransac_tol_m
     ).sum(axis=0)
     best = int(np.argmax(score))
     return normals[best], float(offsets[best])
 
 
 def _refit(
-    points: np.ndarray, normal: np.ndarray, offset: float, up: np.ndarray
+    points: np.ndarray, normal: np.ndarray, offset: float, up: np.ndarray, max_tilt_deg: float
 ) -> tuple[np.ndarray, float]:
     """Least-squares plane of ``points``; the previous one when its normal leaves the cone."""
     centre = points.mean(axis=0)
     fitted = np.linalg.svd(points - centre, full_matrices=False)[2][2]
     if fitted @ up < 0:
         fitted = -fitted
-    if fitted @ up < math.cos(math.radians(MAX_TILT_DEG)):
+    if fitted @ up < math.cos(math.radians(max_tilt_deg)):
         return normal, offset
     return fitted, float(fitted @ centre)
 
@@ -336,14 +364,14 @@ def _plane_basis(normal: np.ndarray) -> np.ndarray:
     return np.stack([first, np.cross(normal, first)])
 
 
-def _coverage(uv: np.ndarray, voxel: float) -> tuple[float, int]:
+def _coverage(uv: np.ndarray, voxel: float, coarse_voxels: int) -> tuple[float, int]:
     """Occupied area (m2, cells of ``voxel``) of in-plane points, and the count of their coarse
-    cells (COARSE_VOXELS voxels) whose eight neighbours are occupied too: zero for lines and
+    cells (``coarse_voxels`` voxels) whose eight neighbours are occupied too: zero for lines and
     small blobs whatever their extent. Sparse, so a stray far inlier costs nothing."""
     if len(uv) == 0:
         return 0.0, 0
     area = len(np.unique(np.floor(uv / voxel).astype(np.int64), axis=0)) * voxel**2
-    cells = np.floor(uv / (COARSE_VOXELS * voxel)).astype(np.int64)
+    cells = np.floor(uv / (coarse_voxels * voxel)).astype(np.int64)
     cells -= cells.min(axis=0) - 1
     width = int(cells[:, 1].max()) + 2
     keys = np.unique(cells[:, 0] * width + cells[:, 1])

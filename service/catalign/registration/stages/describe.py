@@ -38,11 +38,6 @@ def rotations_of(orientation: Orientation) -> list[np.ndarray]:
     return [axis_angle(MODEL_UP, -heading) @ turn for heading in orientation.headings]
 
 
-def even_headings(count: int) -> tuple[float, ...]:
-    """``count`` headings evenly spaced over the full turn, from zero."""
-    return tuple(2 * np.pi * k / count for k in range(count))
-
-
 @dataclass(frozen=True, eq=False)
 class QueryView:
     """The query described at one heading; key points are in the observation frame."""
