@@ -81,7 +81,10 @@ def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: 
     np.save(tmp_path / "beta.npy", procedural_shape(2).points.astype(np.float32))
     runner.invoke(app, ["library", "add", str(library), str(tmp_path / "beta.npy")])
     info = runner.invoke(app, ["library", "info", str(library)])
-    assert "models: 2" in info.output and "engine options: icp.iterations=20 icp.poses=2 sweep.models=0 top_k=5" in info.output
+    assert (
+        "models: 2" in info.output
+        and "engine options: icp.iterations=20 icp.poses=2 sweep.models=0 top_k=5" in info.output
+    )
     cleared = runner.invoke(app, ["library", "configure", str(library), "--clear"])
     assert cleared.exit_code == 0 and "(the defaults)" in cleared.output
     assert json.loads(manifest.read_text())["engine"] == {}
