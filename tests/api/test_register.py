@@ -176,7 +176,7 @@ def test_info_describes_what_is_served(client: httpx.Client, server: Server) -> 
     assert info["library"]["path"] == str(server.settings.library)
     assert info["model_card"]["sha256"] == info["library"]["fingerprint"]
     assert info["headings"] in (1, 8) and info["voxel_size"] > 0
-    served = server.settings.engine.model_dump()
+    served = server.settings.engine.model_dump(mode="json")
     served["orient"]["headings"] = info["headings"]  # resolved for the weights
     assert info["engine"] == served
     assert set(info["versions"]) == {"python", "torch", "open3d", "numpy"}

@@ -217,13 +217,13 @@ def test_engine_options_are_refused_for_the_classic_baseline(tmp_path: Path):
 def test_engine_options_reach_the_engine_and_the_report(chairs_root: Path, tmp_path: Path):
     out = tmp_path / "engine.json"
     args = ["evaluate", "--method", "learned", "--max-shapes", "2", "--views", "1"]
-    args += ["--setting", "same", "--engine", "top_k=1", "--engine", "alternatives=0"]
+    args += ["--setting", "same", "--engine", "top_k=1", "--engine", "decision.alternatives=0"]
     result = runner.invoke(app, [*args, "--chairs-dir", str(chairs_root), "--out", str(out)])
     assert result.exit_code == 0, result.output
     report = json.loads(out.read_text())
     engine = report["config"]["engine"]
-    assert (engine["top_k"], engine["alternatives"]) == (1, 0)
-    assert engine["match_points"] == EngineConfig().match_points
+    assert (engine["top_k"], engine["decision"]["alternatives"]) == (1, 0)
+    assert engine["match"]["query_points"] == EngineConfig().match.query_points
     cases = report["cases"]["same"]
     assert len(cases) == 2
     assert all(case.get("alternatives", []) == [] for case in cases)  # alternatives=0 reached it
