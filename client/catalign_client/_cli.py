@@ -79,6 +79,7 @@ def _align(client: Client, args: argparse.Namespace) -> dict[str, Any]:
         "up": args.up,
         "estimate_scale": args.estimate_scale,
         "seed": args.seed,
+        "category": args.category,
         "min_confidence": args.min_confidence,
     }
     points = _local_points(path)
@@ -115,7 +116,7 @@ def _local_points(path: Path) -> np.ndarray | None:
 
 
 def _models(client: Client, args: argparse.Namespace) -> dict[str, Any]:
-    models = client.models()
+    models = client.models(category=args.category)
     return {"count": len(models), "models": [model.to_dict() for model in models]}
 
 
@@ -143,6 +144,9 @@ def _parser() -> argparse.ArgumentParser:
     align.add_argument("--seed", type=int, help="seed for a reproducible answer")
     align.add_argument("--estimate-scale", action="store_true", help="also fit a uniform scale")
     align.add_argument(
+        "--category", help="search only this category's models (e.g. table); default: every model"
+    )
+    align.add_argument(
         "--min-confidence",
         type=float,
         metavar="P",
@@ -158,6 +162,7 @@ def _parser() -> argparse.ArgumentParser:
     align.set_defaults(run=_align)
 
     models = commands.add_parser("models", parents=[common], help="list the library as JSON")
+    models.add_argument("--category", help="only this category's models (e.g. table)")
     models.set_defaults(run=_models)
     return parser
 

@@ -93,6 +93,7 @@ class _BaseClient:
         up: UpLike | None,
         estimate_scale: bool,
         seed: int | None,
+        category: str | None,
         min_confidence: float | None,
         encoding: Encoding,
     ) -> Request:
@@ -102,6 +103,7 @@ class _BaseClient:
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
         )
         if encoding == "binary":
@@ -124,6 +126,7 @@ class _BaseClient:
         up: UpLike | None,
         estimate_scale: bool,
         seed: int | None,
+        category: str | None,
         min_confidence: float | None,
     ) -> Request:
         options = registration_options(
@@ -131,16 +134,22 @@ class _BaseClient:
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
         )
         return Request("POST", "/register", params=query(options), files=upload(path))
 
     def _add_model_request(
-        self, path: str | Path, *, model_id: str | None, units: str | None
+        self, path: str | Path, *, model_id: str | None, units: str | None, category: str | None
     ) -> Request:
-        fields = {"model_id": model_id, "units": units}
+        fields = {"model_id": model_id, "units": units, "category": category}
         data = {name: value for name, value in fields.items() if value is not None}
         return Request("POST", "/models", files=upload(path), data=data or None, idempotent=False)
+
+    @staticmethod
+    def _models_request(category: str | None) -> Request:
+        params = None if category is None else {"category": category}
+        return Request("GET", "/models", params=params)
 
     def _model_points_request(self, model_id: str, *, max_points: int) -> Request:
         return Request(
@@ -296,6 +305,7 @@ class Client(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        category: str | None = None,
         min_confidence: float | None = None,
         encoding: Encoding = "binary",
     ) -> AlignResult:
@@ -306,7 +316,9 @@ class Client(_BaseClient):
         x, y, z; NaN returns dropped). ``top_k``: how many shortlisted models to register (server
         default when ``None``). ``up``: the observation's up direction, e.g. ``(0, 0, 1)``.
         ``estimate_scale``: also fit a uniform scale (0.5 to 2). ``seed``: for a reproducible
-        answer.
+        answer. ``category``: search only that category's models (e.g. ``"table"``, as the
+        robot's detector labels the object; an unknown one raises :class:`InvalidInputError`
+        listing the library's); the result's ``category`` says which the answer is.
         ``min_confidence``: a probability in [0, 1] the answer needs to be accepted; below it
         the result still has the pose, with ``accepted`` ``False`` and a ``reason`` (not an
         error: the caller decides, e.g. to look from another side).
@@ -318,6 +330,7 @@ class Client(_BaseClient):
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
             encoding=encoding,
         )
@@ -331,6 +344,7 @@ class Client(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        category: str | None = None,
         min_confidence: float | None = None,
     ) -> AlignResult:
         """Like :meth:`align`, uploading a ``.ply/.pcd/.npy/.xyz`` file for the server to read."""
@@ -340,13 +354,14 @@ class Client(_BaseClient):
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
         )
         return self._result(self._call(request), up)
 
-    def models(self) -> list[ModelInfo]:
-        """Every model of the server's library."""
-        return parse_models(self._call(Request("GET", "/models")))
+    def models(self, *, category: str | None = None) -> list[ModelInfo]:
+        """Every model of the server's library, or only those of ``category``."""
+        return parse_models(self._call(self._models_request(category)))
 
     def model(self, model_id: str) -> ModelInfo:
         """One library model; :class:`NotFoundError` when there is none with that id."""
@@ -368,10 +383,16 @@ class Client(_BaseClient):
         return self._points(self._send(self._model_points_request(model_id, max_points=max_points)))
 
     def add_model(
-        self, path: str | Path, *, model_id: str | None = None, units: str | None = None
+        self,
+        path: str | Path,
+        *,
+        model_id: str | None = None,
+        units: str | None = None,
+        category: str | None = None,
     ) -> ModelInfo:
-        """Upload a CAD file (mesh or point cloud) into the library; the id defaults to its stem."""
-        request = self._add_model_request(path, model_id=model_id, units=units)
+        """Upload a CAD file (mesh or point cloud) into the library; the id defaults to its stem,
+        the category to ``chair``."""
+        request = self._add_model_request(path, model_id=model_id, units=units, category=category)
         return ModelInfo.from_json(self._call(request))
 
     def remove_model(self, model_id: str) -> int:
@@ -458,6 +479,7 @@ class AsyncClient(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        category: str | None = None,
         min_confidence: float | None = None,
         encoding: Encoding = "binary",
     ) -> AlignResult:
@@ -468,6 +490,7 @@ class AsyncClient(_BaseClient):
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
             encoding=encoding,
         )
@@ -481,6 +504,7 @@ class AsyncClient(_BaseClient):
         up: UpLike | None = None,
         estimate_scale: bool = False,
         seed: int | None = None,
+        category: str | None = None,
         min_confidence: float | None = None,
     ) -> AlignResult:
         """See :meth:`Client.align_file`."""
@@ -490,13 +514,14 @@ class AsyncClient(_BaseClient):
             up=up,
             estimate_scale=estimate_scale,
             seed=seed,
+            category=category,
             min_confidence=min_confidence,
         )
         return self._result(await self._call(request), up)
 
-    async def models(self) -> list[ModelInfo]:
+    async def models(self, *, category: str | None = None) -> list[ModelInfo]:
         """See :meth:`Client.models`."""
-        return parse_models(await self._call(Request("GET", "/models")))
+        return parse_models(await self._call(self._models_request(category)))
 
     async def model(self, model_id: str) -> ModelInfo:
         """See :meth:`Client.model`."""
@@ -508,10 +533,15 @@ class AsyncClient(_BaseClient):
         return self._points(await self._send(request))
 
     async def add_model(
-        self, path: str | Path, *, model_id: str | None = None, units: str | None = None
+        self,
+        path: str | Path,
+        *,
+        model_id: str | None = None,
+        units: str | None = None,
+        category: str | None = None,
     ) -> ModelInfo:
         """See :meth:`Client.add_model`."""
-        request = self._add_model_request(path, model_id=model_id, units=units)
+        request = self._add_model_request(path, model_id=model_id, units=units, category=category)
         return ModelInfo.from_json(await self._call(request))
 
     async def remove_model(self, model_id: str) -> int:

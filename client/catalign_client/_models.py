@@ -111,7 +111,8 @@ class AlignResult(_Posed):
     the server's weights have no calibrator. ``accepted`` is ``False`` only when the request
     gave ``min_confidence`` and the confidence is below it (or unknown); the pose is still
     there, and ``reason`` says why in a sentence. ``alternatives`` are up to 3 other distinct
-    answers (:class:`Alternative`), best first.
+    answers (:class:`Alternative`), best first. ``category`` is the answer's model's category
+    (``None`` from servers that do not report it).
 
     Usage::
 
@@ -138,11 +139,13 @@ class AlignResult(_Posed):
     accepted: bool = True
     reason: str | None = None
     alternatives: list[Alternative] = field(default_factory=list)
+    category: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, the pose as nested lists (the wire format)."""
         return {
             "model_id": self.model_id,
+            "category": self.category,
             "pose": self.pose.tolist(),
             "scale": self.scale,
             "fitness": self.fitness,
@@ -217,6 +220,7 @@ class AlignResult(_Posed):
                 Alternative.from_json(item)
                 for item in (_list(body, "alternatives") if "alternatives" in body else [])
             ],
+            category=_optional_str(body, "category"),
         )
 
 
@@ -226,6 +230,7 @@ class ModelInfo:
 
     Parameters:
         model_id: the library id (the file stem unless given at upload).
+        category: the kind of object it is, e.g. ``"chair"`` or ``"table"``.
         source: the file the entry was built from.
         units: the length unit of the model's coordinates, e.g. ``"m"``.
         num_points: how many surface points the library keeps for it.
@@ -233,6 +238,7 @@ class ModelInfo:
     """
 
     model_id: str
+    category: str
     source: str
     units: str
     num_points: int
@@ -244,6 +250,7 @@ class ModelInfo:
         """Plain JSON-ready data, as the server sent it."""
         return {
             "model_id": self.model_id,
+            "category": self.category,
             "source": self.source,
             "units": self.units,
             "num_points": self.num_points,
@@ -258,6 +265,7 @@ class ModelInfo:
         body = _mapping(data, "model")
         return cls(
             model_id=_str(body, "model_id"),
+            category=str(body.get("category") or "chair"),  # servers before categories: chairs
             source=str(body.get("source") or ""),
             units=str(body.get("units") or ""),
             num_points=_int(body, "num_points"),

@@ -52,6 +52,7 @@ def registration_options(
     up: UpLike | None,
     estimate_scale: bool,
     seed: int | None,
+    category: str | None = None,
     min_confidence: float | None = None,
 ) -> dict[str, Any]:
     """The registration options, checked, with "not given" left out (the server's default)."""
@@ -69,6 +70,10 @@ def registration_options(
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         options["seed"] = seed
+    if category is not None:
+        if not isinstance(category, str) or not category:
+            raise ValueError(f"category must be a non-empty string, got {category!r}")
+        options["category"] = category
     if min_confidence is not None:
         options["min_confidence"] = confidence_threshold(min_confidence)
     return options

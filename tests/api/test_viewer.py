@@ -205,7 +205,7 @@ def test_the_viewer_registers_a_scan_and_draws_the_answer(
     wait_for(browser, "return document.querySelectorAll('#models li').length === 3", 30, "library")
 
     text = {name: browser.find_element(By.ID, name).text for name in _ANSWER_FIELDS}
-    assert text["model-id"] == "proc-0001"
+    assert text["model-id"] == "proc-0001" and text["answer-category"] == "chair"
     assert float(text["fitness"]) > 0.5
     assert "total" in text["timings"] and len(text["candidates"].splitlines()) == 3
     assert not browser.find_element(By.ID, "error").is_displayed()
@@ -234,8 +234,12 @@ def test_the_viewer_registers_a_scan_and_draws_the_answer(
     violations = [e for e in browser.get_log("browser") if "Content Security" in e["message"]]
     assert not violations
 
+    browser.find_element(By.ID, "category").send_keys("sofa")
+    browser.find_element(By.ID, "register").click()
+    wait_for(browser, _error_says("no model of category 'sofa'"), 60, "the unknown category")
 
-_ANSWER_FIELDS = ("model-id", "fitness", "inlier-rmse", "timings", "candidates")
+
+_ANSWER_FIELDS = ("model-id", "answer-category", "fitness", "inlier-rmse", "timings", "candidates")
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1b\x63\x61talign/api/catalign.proto\x12\x0b\x63\x61talign.v1\"\xa1\x01\n\x0fRegisterRequest\x12\x0e\n\x06points\x18\x01 \x01(\x0c\x12\x12\n\x05top_k\x18\x02 \x01(\x05H\x00\x88\x01\x01\x12\n\n\x02up\x18\x03 \x03(\x02\x12\x16\n\x0e\x65stimate_scale\x18\x04 \x01(\x08\x12\x0c\n\x04seed\x18\x05 \x01(\x05\x12\x1b\n\x0emin_confidence\x18\x06 \x01(\x01H\x01\x88\x01\x01\x42\x08\n\x06_top_kB\x11\n\x0f_min_confidence\",\n\tCandidate\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\r\n\x05score\x18\x02 \x01(\x01\"\x84\x01\n\x0b\x41lternative\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\r\n\x05score\x18\x04 \x01(\x01\x12\x0f\n\x07\x66itness\x18\x05 \x01(\x01\x12\x17\n\nconfidence\x18\x06 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_confidence\"\xf6\x03\n\rRegisterReply\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\x0f\n\x07\x66itness\x18\x04 \x01(\x01\x12\x13\n\x0binlier_rmse\x18\x05 \x01(\x01\x12\x13\n\x0bnum_inliers\x18\x06 \x01(\x03\x12\x14\n\x0cinlier_ratio\x18\x07 \x01(\x01\x12*\n\ncandidates\x18\x08 \x03(\x0b\x32\x16.catalign.v1.Candidate\x12=\n\ntimings_ms\x18\t \x03(\x0b\x32).catalign.v1.RegisterReply.TimingsMsEntry\x12\x12\n\nrequest_id\x18\n \x01(\t\x12\x18\n\x10points_set_aside\x18\x0b \x01(\x03\x12\n\n\x02up\x18\x0c \x03(\x01\x12\x14\n\x0cup_estimated\x18\r \x01(\x08\x12\x17\n\nconfidence\x18\x0e \x01(\x01H\x00\x88\x01\x01\x12\x10\n\x08\x61\x63\x63\x65pted\x18\x0f \x01(\x08\x12\x0e\n\x06reason\x18\x10 \x01(\t\x12.\n\x0c\x61lternatives\x18\x11 \x03(\x0b\x32\x18.catalign.v1.Alternative\x1a\x30\n\x0eTimingsMsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x42\r\n\x0b_confidence\"\x13\n\x11ListModelsRequest\"~\n\x05Model\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\r\n\x05units\x18\x03 \x01(\t\x12\x12\n\nnum_points\x18\x04 \x01(\x03\x12\x10\n\x08\x62\x62ox_min\x18\x05 \x03(\x01\x12\x10\n\x08\x62\x62ox_max\x18\x06 \x03(\x01\x12\x0c\n\x04size\x18\x07 \x03(\x01\"D\n\x0fListModelsReply\x12\r\n\x05\x63ount\x18\x01 \x01(\x05\x12\"\n\x06models\x18\x02 \x03(\x0b\x32\x12.catalign.v1.Model2\x9c\x01\n\x08\x43\x61talign\x12\x44\n\x08Register\x12\x1c.catalign.v1.RegisterRequest\x1a\x1a.catalign.v1.RegisterReply\x12J\n\nListModels\x12\x1e.catalign.v1.ListModelsRequest\x1a\x1c.catalign.v1.ListModelsReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1b\x63\x61talign/api/catalign.proto\x12\x0b\x63\x61talign.v1\"\xc5\x01\n\x0fRegisterRequest\x12\x0e\n\x06points\x18\x01 \x01(\x0c\x12\x12\n\x05top_k\x18\x02 \x01(\x05H\x00\x88\x01\x01\x12\n\n\x02up\x18\x03 \x03(\x02\x12\x16\n\x0e\x65stimate_scale\x18\x04 \x01(\x08\x12\x0c\n\x04seed\x18\x05 \x01(\x05\x12\x1b\n\x0emin_confidence\x18\x06 \x01(\x01H\x01\x88\x01\x01\x12\x15\n\x08\x63\x61tegory\x18\x07 \x01(\tH\x02\x88\x01\x01\x42\x08\n\x06_top_kB\x11\n\x0f_min_confidenceB\x0b\n\t_category\",\n\tCandidate\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\r\n\x05score\x18\x02 \x01(\x01\"\x84\x01\n\x0b\x41lternative\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\r\n\x05score\x18\x04 \x01(\x01\x12\x0f\n\x07\x66itness\x18\x05 \x01(\x01\x12\x17\n\nconfidence\x18\x06 \x01(\x01H\x00\x88\x01\x01\x42\r\n\x0b_confidence\"\x88\x04\n\rRegisterReply\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04pose\x18\x02 \x03(\x01\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\x0f\n\x07\x66itness\x18\x04 \x01(\x01\x12\x13\n\x0binlier_rmse\x18\x05 \x01(\x01\x12\x13\n\x0bnum_inliers\x18\x06 \x01(\x03\x12\x14\n\x0cinlier_ratio\x18\x07 \x01(\x01\x12*\n\ncandidates\x18\x08 \x03(\x0b\x32\x16.catalign.v1.Candidate\x12=\n\ntimings_ms\x18\t \x03(\x0b\x32).catalign.v1.RegisterReply.TimingsMsEntry\x12\x12\n\nrequest_id\x18\n \x01(\t\x12\x18\n\x10points_set_aside\x18\x0b \x01(\x03\x12\n\n\x02up\x18\x0c \x03(\x01\x12\x14\n\x0cup_estimated\x18\r \x01(\x08\x12\x17\n\nconfidence\x18\x0e \x01(\x01H\x00\x88\x01\x01\x12\x10\n\x08\x61\x63\x63\x65pted\x18\x0f \x01(\x08\x12\x0e\n\x06reason\x18\x10 \x01(\t\x12.\n\x0c\x61lternatives\x18\x11 \x03(\x0b\x32\x18.catalign.v1.Alternative\x12\x10\n\x08\x63\x61tegory\x18\x12 \x01(\t\x1a\x30\n\x0eTimingsMsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x01:\x02\x38\x01\x42\r\n\x0b_confidence\"\x13\n\x11ListModelsRequest\"\x90\x01\n\x05Model\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0e\n\x06source\x18\x02 \x01(\t\x12\r\n\x05units\x18\x03 \x01(\t\x12\x12\n\nnum_points\x18\x04 \x01(\x03\x12\x10\n\x08\x62\x62ox_min\x18\x05 \x03(\x01\x12\x10\n\x08\x62\x62ox_max\x18\x06 \x03(\x01\x12\x0c\n\x04size\x18\x07 \x03(\x01\x12\x10\n\x08\x63\x61tegory\x18\x08 \x01(\t\"D\n\x0fListModelsReply\x12\r\n\x05\x63ount\x18\x01 \x01(\x05\x12\"\n\x06models\x18\x02 \x03(\x0b\x32\x12.catalign.v1.Model2\x9c\x01\n\x08\x43\x61talign\x12\x44\n\x08Register\x12\x1c.catalign.v1.RegisterRequest\x1a\x1a.catalign.v1.RegisterReply\x12J\n\nListModels\x12\x1e.catalign.v1.ListModelsRequest\x1a\x1c.catalign.v1.ListModelsReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,21 +34,21 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_REGISTERREPLY_TIMINGSMSENTRY']._loaded_options = None
   _globals['_REGISTERREPLY_TIMINGSMSENTRY']._serialized_options = b'8\001'
   _globals['_REGISTERREQUEST']._serialized_start=45
-  _globals['_REGISTERREQUEST']._serialized_end=206
-  _globals['_CANDIDATE']._serialized_start=208
-  _globals['_CANDIDATE']._serialized_end=252
-  _globals['_ALTERNATIVE']._serialized_start=255
-  _globals['_ALTERNATIVE']._serialized_end=387
-  _globals['_REGISTERREPLY']._serialized_start=390
-  _globals['_REGISTERREPLY']._serialized_end=892
-  _globals['_REGISTERREPLY_TIMINGSMSENTRY']._serialized_start=829
-  _globals['_REGISTERREPLY_TIMINGSMSENTRY']._serialized_end=877
-  _globals['_LISTMODELSREQUEST']._serialized_start=894
-  _globals['_LISTMODELSREQUEST']._serialized_end=913
-  _globals['_MODEL']._serialized_start=915
-  _globals['_MODEL']._serialized_end=1041
-  _globals['_LISTMODELSREPLY']._serialized_start=1043
-  _globals['_LISTMODELSREPLY']._serialized_end=1111
-  _globals['_CATALIGN']._serialized_start=1114
-  _globals['_CATALIGN']._serialized_end=1270
+  _globals['_REGISTERREQUEST']._serialized_end=242
+  _globals['_CANDIDATE']._serialized_start=244
+  _globals['_CANDIDATE']._serialized_end=288
+  _globals['_ALTERNATIVE']._serialized_start=291
+  _globals['_ALTERNATIVE']._serialized_end=423
+  _globals['_REGISTERREPLY']._serialized_start=426
+  _globals['_REGISTERREPLY']._serialized_end=946
+  _globals['_REGISTERREPLY_TIMINGSMSENTRY']._serialized_start=883
+  _globals['_REGISTERREPLY_TIMINGSMSENTRY']._serialized_end=931
+  _globals['_LISTMODELSREQUEST']._serialized_start=948
+  _globals['_LISTMODELSREQUEST']._serialized_end=967
+  _globals['_MODEL']._serialized_start=970
+  _globals['_MODEL']._serialized_end=1114
+  _globals['_LISTMODELSREPLY']._serialized_start=1116
+  _globals['_LISTMODELSREPLY']._serialized_end=1184
+  _globals['_CATALIGN']._serialized_start=1187
+  _globals['_CATALIGN']._serialized_end=1343
 # @@protoc_insertion_point(module_scope)

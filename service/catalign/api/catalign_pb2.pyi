@@ -7,20 +7,22 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("points", "top_k", "up", "estimate_scale", "seed", "min_confidence")
+    __slots__ = ("points", "top_k", "up", "estimate_scale", "seed", "min_confidence", "category")
     POINTS_FIELD_NUMBER: _ClassVar[int]
     TOP_K_FIELD_NUMBER: _ClassVar[int]
     UP_FIELD_NUMBER: _ClassVar[int]
     ESTIMATE_SCALE_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     MIN_CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    CATEGORY_FIELD_NUMBER: _ClassVar[int]
     points: bytes
     top_k: int
     up: _containers.RepeatedScalarFieldContainer[float]
     estimate_scale: bool
     seed: int
     min_confidence: float
-    def __init__(self, points: _Optional[bytes] = ..., top_k: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., estimate_scale: _Optional[bool] = ..., seed: _Optional[int] = ..., min_confidence: _Optional[float] = ...) -> None: ...
+    category: str
+    def __init__(self, points: _Optional[bytes] = ..., top_k: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., estimate_scale: _Optional[bool] = ..., seed: _Optional[int] = ..., min_confidence: _Optional[float] = ..., category: _Optional[str] = ...) -> None: ...
 
 class Candidate(_message.Message):
     __slots__ = ("model_id", "score")
@@ -47,7 +49,7 @@ class Alternative(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., score: _Optional[float] = ..., fitness: _Optional[float] = ..., confidence: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives")
+    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives", "category")
     class TimingsMsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -72,6 +74,7 @@ class RegisterReply(_message.Message):
     ACCEPTED_FIELD_NUMBER: _ClassVar[int]
     REASON_FIELD_NUMBER: _ClassVar[int]
     ALTERNATIVES_FIELD_NUMBER: _ClassVar[int]
+    CATEGORY_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     pose: _containers.RepeatedScalarFieldContainer[float]
     scale: float
@@ -89,14 +92,15 @@ class RegisterReply(_message.Message):
     accepted: bool
     reason: str
     alternatives: _containers.RepeatedCompositeFieldContainer[Alternative]
-    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ...) -> None: ...
+    category: str
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
 
 class Model(_message.Message):
-    __slots__ = ("model_id", "source", "units", "num_points", "bbox_min", "bbox_max", "size")
+    __slots__ = ("model_id", "source", "units", "num_points", "bbox_min", "bbox_max", "size", "category")
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     UNITS_FIELD_NUMBER: _ClassVar[int]
@@ -104,6 +108,7 @@ class Model(_message.Message):
     BBOX_MIN_FIELD_NUMBER: _ClassVar[int]
     BBOX_MAX_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
+    CATEGORY_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     source: str
     units: str
@@ -111,7 +116,8 @@ class Model(_message.Message):
     bbox_min: _containers.RepeatedScalarFieldContainer[float]
     bbox_max: _containers.RepeatedScalarFieldContainer[float]
     size: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, model_id: _Optional[str] = ..., source: _Optional[str] = ..., units: _Optional[str] = ..., num_points: _Optional[int] = ..., bbox_min: _Optional[_Iterable[float]] = ..., bbox_max: _Optional[_Iterable[float]] = ..., size: _Optional[_Iterable[float]] = ...) -> None: ...
+    category: str
+    def __init__(self, model_id: _Optional[str] = ..., source: _Optional[str] = ..., units: _Optional[str] = ..., num_points: _Optional[int] = ..., bbox_min: _Optional[_Iterable[float]] = ..., bbox_max: _Optional[_Iterable[float]] = ..., size: _Optional[_Iterable[float]] = ..., category: _Optional[str] = ...) -> None: ...
 
 class ListModelsReply(_message.Message):
     __slots__ = ("count", "models")

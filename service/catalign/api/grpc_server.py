@@ -55,6 +55,7 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                     "up": list(request.up) or None,
                     "estimate_scale": request.estimate_scale,
                     "seed": request.seed,
+                    "category": request.category if request.HasField("category") else None,
                     "min_confidence": (
                         request.min_confidence if request.HasField("min_confidence") else None
                     ),
@@ -77,6 +78,7 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
             models = [
                 catalign_pb2.Model(
                     model_id=e.model_id,
+                    category=e.category,
                     source=e.source,
                     units=e.units,
                     num_points=e.num_points,
@@ -137,6 +139,7 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
     """The gRPC form of an HTTP answer, so that both carry the same fields and values."""
     return catalign_pb2.RegisterReply(
         model_id=answer.model_id,
+        category=answer.category or "",
         pose=_row_major(answer.pose),
         scale=answer.scale,
         fitness=answer.fitness,

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
 from typing_extensions import TypeAliasType
 
 from catalign.geometry.se3 import scale_of
+from catalign.library.sources import CATEGORY_PATTERN
 from catalign.registration.config import EngineConfig
 
 if TYPE_CHECKING:
@@ -70,6 +71,14 @@ class RegisterOptions(BaseModel):
         ge=0,
         le=MAX_SEED,
         description="RANSAC seed: same request, same answer.",
+    )
+    category: str | None = Field(
+        default=None,
+        strict=True,
+        pattern=f"^{CATEGORY_PATTERN.pattern}$",
+        description="Search only this category's models (e.g. table, as a detector labels the "
+        "object); an unknown category is a 422 that lists the library's. Default: every model, "
+        "and the answer says which category it chose.",
     )
     min_confidence: float | None = Field(
         default=None,
@@ -176,6 +185,9 @@ class RegisterResponse(BaseModel):
     """The best model for the query, its pose and its inlier statistics."""
 
     model_id: str
+    category: str | None = Field(
+        description="The answer's model's category (the request's, when it named one)."
+    )
     pose: Pose4 = Field(
         description="4x4 row-major model -> observation transform "
         "(x_obs = pose[:3, :3] @ x_model + pose[:3, 3]); the 3x3 block is scale * R."
@@ -235,6 +247,7 @@ class RegisterResponse(BaseModel):
         accepted, reason = acceptance(confidence, min_confidence)
         return cls(
             model_id=result.model_id,
+            category=result.category,
             pose=[[float(v) for v in row] for row in result.pose],
             scale=result.scale,
             fitness=result.fitness,
@@ -260,6 +273,7 @@ class ModelPublic(BaseModel):
     """One library model as callers see it."""
 
     model_id: str
+    category: str = Field(description="The kind of object it is (chair, table...).")
     source: str = Field(
         description="The file it was built from, upload:<file name>, or procedural:<seed>."
     )
@@ -273,6 +287,7 @@ class ModelPublic(BaseModel):
     def from_entry(cls, entry: LibraryEntry) -> ModelPublic:
         return cls(
             model_id=entry.model_id,
+            category=entry.category,
             source=entry.source,
             units=entry.units,
             num_points=entry.num_points,
@@ -285,6 +300,9 @@ class ModelPublic(BaseModel):
 class ModelList(BaseModel):
     count: int
     models: list[ModelPublic]
+    categories: dict[str, int] = Field(
+        description="How many models of the whole library each category holds."
+    )
 
 
 class ModelRemoved(BaseModel):

@@ -181,10 +181,12 @@ class RegistrationService:
         await self.refresh()
         return self.library[model_id]
 
-    async def models(self) -> list[LibraryEntry]:
+    async def models(self, category: str | None = None) -> list[LibraryEntry]:
+        """The library's models, sorted by id; only ``category``'s when given."""
         await self.refresh()
         library = self.library
-        return [library[i] for i in library.ids]
+        entries = (library[i] for i in library.ids)
+        return [e for e in entries if category is None or e.category == category]
 
     async def refresh(self, slot: Slot | None = None) -> None:
         """Load the library again when another process changed it since it was loaded (on a
@@ -246,11 +248,15 @@ class RegistrationService:
 
     # library changes --------------------------------------------------------------------------
 
-    async def add_model(self, upload: Upload, model_id: str, units: str) -> LibraryEntry:
-        """Describe an uploaded shape and add it as ``model_id``; 409 if the id exists."""
-        from catalign.library.sources import unit_factor, validate_model_id
+    async def add_model(
+        self, upload: Upload, model_id: str, units: str, category: str
+    ) -> LibraryEntry:
+        """Describe an uploaded shape and add it as ``model_id`` of ``category``; 409 if the
+        id exists."""
+        from catalign.library.sources import unit_factor, validate_category, validate_model_id
 
         validate_model_id(model_id)
+        validate_category(category)
         unit_factor(units)
 
         def check(library: Library) -> None:
@@ -260,7 +266,7 @@ class RegistrationService:
                     "another model_id"
                 )
 
-        library = await self._change(check, self._add, upload, model_id, units)
+        library = await self._change(check, self._add, upload, model_id, units, category)
         return library[model_id]
 
     async def remove_model(self, model_id: str) -> int:
@@ -346,6 +352,7 @@ class RegistrationService:
             "up": None if options.up is None else np.asarray(options.up, dtype=np.float64),
             "estimate_scale": options.estimate_scale,
             "seed": options.seed,
+            "category": options.category,
         }
         if served.engine is not None:
             result = served.engine.register(points, **engine_options, deadline=deadline)
@@ -357,7 +364,12 @@ class RegistrationService:
         return dataclasses.replace(result, timings_ms=timings, correspondences=None)
 
     def _add(
-        self, extractor: LearnedExtractor, upload: Upload, model_id: str, units: str
+        self,
+        extractor: LearnedExtractor,
+        upload: Upload,
+        model_id: str,
+        units: str,
+        category: str,
     ) -> Library:
         from catalign.library.index import add
         from catalign.library.loaded import load
@@ -371,6 +383,7 @@ class RegistrationService:
                 extractor,
                 ids=[model_id],
                 units=units,
+                category=category,
                 progress=False,
                 source_name=f"upload:{upload.filename}",
                 max_points=self.settings.max_points,

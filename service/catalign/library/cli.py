@@ -21,6 +21,14 @@ app = typer.Typer(
 
 ModelDir = Annotated[Path | None, typer.Option(help="Extractor weights (default: model_store/).")]
 Units = Annotated[str, typer.Option(help="Units of the source coordinates: m, cm or mm.")]
+Category = Annotated[
+    str | None,
+    typer.Option(
+        help="Category of every model (a short lower-case name: chair, table). Without it, a "
+        "file in a sub-folder of a named folder takes the sub-folder's name (SRC/table/a.ply: "
+        "table), any other file is a chair."
+    ),
+]
 
 
 def _extractor(model_dir: Path | None):
@@ -34,6 +42,7 @@ def build(
     sources: Annotated[list[Path], typer.Argument(help="Shape files and folders.")],
     out: Annotated[Path, typer.Option(help="Library folder to create.")],
     units: Units = "m",
+    category: Category = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing library.")] = False,
     model_dir: ModelDir = None,
 ) -> None:
@@ -42,9 +51,14 @@ def build(
 
     with exit_on_error():
         manifest = build_index(
-            sources, out, _extractor(model_dir), units=units, overwrite=overwrite
+            sources,
+            out,
+            _extractor(model_dir),
+            units=units,
+            category=category,
+            overwrite=overwrite,
         )
-    typer.echo(f"built {out}: {len(manifest.entries)} models")
+    typer.echo(f"built {out}: {len(manifest.entries)} models ({_counts(manifest)})")
 
 
 @app.command()
@@ -70,6 +84,7 @@ def add(
     library: Annotated[Path, typer.Argument(help="Library folder.")],
     sources: Annotated[list[Path], typer.Argument(help="Shape files and folders to add.")],
     units: Units = "m",
+    category: Category = None,
     replace: Annotated[bool, typer.Option(help="Replace entries whose id exists.")] = False,
     model_dir: ModelDir = None,
 ) -> None:
@@ -78,9 +93,14 @@ def add(
 
     with exit_on_error():
         manifest = add_entries(
-            library, sources, _extractor(model_dir), units=units, replace=replace
+            library,
+            sources,
+            _extractor(model_dir),
+            units=units,
+            category=category,
+            replace=replace,
         )
-    typer.echo(f"{library}: {len(manifest.entries)} models")
+    typer.echo(f"{library}: {len(manifest.entries)} models ({_counts(manifest)})")
 
 
 @app.command()
@@ -136,8 +156,14 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
         f"library: {library}\nformat: {manifest.format_version}\n"
         f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"
         f"created: {manifest.created}\nupdated: {manifest.updated}\n"
-        f"models: {len(manifest.entries)}\nengine options: {_options(manifest.engine)}"
+        f"models: {len(manifest.entries)}\ncategories: {_counts(manifest) or '(none)'}\n"
+        f"engine options: {_options(manifest.engine)}"
     )
+
+
+def _counts(manifest: Any) -> str:
+    """``chair 60, table 12``: the entries of each category."""
+    return ", ".join(f"{name} {count}" for name, count in manifest.categories().items())
 
 
 def _options(engine: dict[str, Any], prefix: str = "") -> str:

@@ -14,7 +14,7 @@ that verification reads instead of searching the points.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,7 +25,7 @@ from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, Dist
 from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.library.retrieval import global_descriptor
-from catalign.library.sources import SourceFile, unit_factor
+from catalign.library.sources import DEFAULT_CATEGORY, SourceFile, unit_factor
 from catalign.limits import MIN_VOXELS
 
 if TYPE_CHECKING:  # the extractor module imports torch; entries only need its interface
@@ -47,7 +47,8 @@ class LibraryEntry:
     float32 from the extractor, ``descriptor`` (K,) float32 for shortlisting, and the bounding
     box of the whole source shape, ``grid`` the distance field of ``points`` over that box.
     ``source`` is the file path (or ``procedural:<seed>``), ``source_sha256`` its checksum,
-    ``units`` the unit the source was declared in.
+    ``units`` the unit the source was declared in, ``category`` the kind of object it is (kept
+    in the manifest, not in the entry's file: :mod:`~catalign.library.sources`).
     """
 
     model_id: str
@@ -62,6 +63,7 @@ class LibraryEntry:
     source: str
     source_sha256: str
     units: str
+    category: str = DEFAULT_CATEGORY
 
     @property
     def num_points(self) -> int:
@@ -190,7 +192,7 @@ def describe_file(
     (an upload's original name), else as the file's absolute path. A file with more than
     ``max_points`` points or vertices is refused from its header."""
     shape = read_shape(source.path, max_points=max_points)
-    return describe_shape(
+    entry = describe_shape(
         source.model_id,
         shape,
         extractor,
@@ -199,6 +201,7 @@ def describe_file(
         units=units,
         num_points=num_points,
     )
+    return replace(entry, category=source.category)
 
 
 def describe_procedural(

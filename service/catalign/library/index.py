@@ -69,17 +69,20 @@ def build(
     *,
     units: str = "m",
     ids: Sequence[str] | None = None,
+    category: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
 ) -> Manifest:
     """Build a library in ``out_dir`` from shape files and folders (folders recursively).
 
-    Refuses a directory that already holds a library unless ``overwrite``; the old library stays
-    usable until the new manifest replaces it.
+    Every entry is of ``category``; without it, of the sub-folder it sits in under a named
+    folder, else a chair (:func:`~catalign.library.sources.collect_sources`). Refuses a
+    directory that already holds a library unless ``overwrite``; the old library stays usable
+    until the new manifest replaces it.
     """
     unit_factor(units)
-    found = collect_sources(sources, ids)
+    found = collect_sources(sources, ids, category)
     jobs = [
         _Job(s.model_id, str(s.path), partial(describe_file, s, extractor, units, num_points))
         for s in found
@@ -123,6 +126,7 @@ def add(
     *,
     units: str = "m",
     ids: Sequence[str] | None = None,
+    category: str | None = None,
     replace: bool = False,
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
@@ -131,14 +135,15 @@ def add(
 ) -> Manifest:
     """Add entries to an existing library, or with ``replace`` replace those whose id exists.
 
-    Adding an id the library already holds without ``replace`` raises InvalidInputError and
-    changes nothing. ``source_name`` is recorded as the source of a single added file instead
-    of its path (the service names uploads so, not by their temporary files); files with more
-    than ``max_points`` points or vertices are refused (the service's upload limit).
+    ``category`` is as :func:`build`'s. Adding an id the library already holds without
+    ``replace`` raises InvalidInputError and changes nothing. ``source_name`` is recorded as the
+    source of a single added file instead of its path (the service names uploads so, not by
+    their temporary files); files with more than ``max_points`` points or vertices are refused
+    (the service's upload limit).
     """
     library_dir = Path(library_dir)
     unit_factor(units)
-    found = collect_sources(sources, ids)
+    found = collect_sources(sources, ids, category)
     if source_name is not None and len(found) != 1:
         raise InvalidInputError(f"source_name names one file, but {len(found)} were given")
     read_manifest(library_dir)  # no library: fail before the lock creates any file

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from catalign.errors import (
+    InvalidInputError,
     LibraryCorruptError,
     LibraryError,
     LibraryMismatchError,
@@ -35,7 +36,8 @@ class Library:
         ids = shortlist(library, global_descriptor(query.features), np.ptp(points, axis=0), k=5)
         model = library[ids[0]]  # LibraryEntry: points, keypoints, features, ...
 
-    ``ids`` are sorted; ``descriptors`` (E,K) float32 and ``sizes`` (E,3) float64 follow them.
+    ``ids`` are sorted; ``descriptors`` (E,K) float32, ``sizes`` (E,3) float64 and
+    ``categories`` (E,) follow them.
     """
 
     def __init__(self, path: Path, manifest: Manifest, entries: Sequence[LibraryEntry]) -> None:
@@ -49,6 +51,7 @@ class Library:
         width = ordered[0].descriptor.shape[0] if ordered else 0
         self.descriptors = np.zeros((len(ordered), width), dtype=np.float32)
         self.sizes = np.zeros((len(ordered), 3), dtype=np.float64)
+        self.categories = np.array([e.category for e in ordered], dtype=object)
         for row, entry in enumerate(ordered):
             self.descriptors[row] = entry.descriptor
             self.sizes[row] = entry.size
@@ -57,6 +60,25 @@ class Library:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def category_counts(self) -> dict[str, int]:
+        """How many entries each category holds, by name."""
+        names, counts = np.unique(self.categories.astype(str), return_counts=True)
+        return {str(name): int(count) for name, count in zip(names, counts, strict=True)}
+
+    def of_category(self, category: str | None) -> np.ndarray | None:
+        """The rows (a mask over ``ids``) of ``category``'s entries; None for every entry
+        (``category`` None). An unknown category raises InvalidInputError listing the
+        library's."""
+        if category is None:
+            return None
+        rows = self.categories == category
+        if not rows.any():
+            held = ", ".join(f"{n} ({c})" for n, c in self.category_counts().items())
+            raise InvalidInputError(
+                f"no model of category {category!r} in the library; it holds {held or 'no models'}"
+            )
+        return rows
 
     def __contains__(self, model_id: object) -> bool:
         return model_id in self._entries

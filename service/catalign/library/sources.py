@@ -1,9 +1,11 @@
 """Which files a library is built from, and the model id and units each one gets.
 
 Callers name files and folders; this module expands folders (recursively, by supported suffix),
-assigns model ids (the file stem unless ids are given), checks every id against a strict pattern
-(ids become file names, so no slashes, no leading dot, no path traversal) and refuses duplicates
-with a message that names both files. It reads no geometry, so every mistake in the arguments is
+assigns model ids (the file stem unless ids are given) and categories (the one given, else the
+sub-folder a file sits in under a named folder, ``SRC/table/a.ply`` -> ``table``, else
+:data:`DEFAULT_CATEGORY`), checks every id and category against a strict pattern (ids become
+file names, so no slashes, no leading dot, no path traversal) and refuses duplicates with a
+message that names both files. It reads no geometry, so every mistake in the arguments is
 reported before any slow work starts.
 """
 
@@ -18,15 +20,21 @@ from catalign.errors import InvalidInputError, ShapeReadError
 from catalign.geometry.io import SUPPORTED_SUFFIXES
 
 MODEL_ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+# A category: a short lower-case name, as a detector's label (``chair``, ``table``, ``bin_2``).
+CATEGORY_PATTERN = re.compile(r"[a-z][a-z0-9_-]{0,31}")
+# The category of an entry whose source names none, and of every entry of a library written
+# before entries had categories (its manifest may name another).
+DEFAULT_CATEGORY = "chair"
 UNIT_FACTORS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
 @dataclass(frozen=True)
 class SourceFile:
-    """One shape file and the model id it will have in the library."""
+    """One shape file, and the model id and category it will have in the library."""
 
     model_id: str
     path: Path
+    category: str = DEFAULT_CATEGORY
 
 
 def validate_model_id(model_id: str, origin: str | None = None) -> str:
@@ -40,6 +48,18 @@ def validate_model_id(model_id: str, origin: str | None = None) -> str:
     return model_id
 
 
+def validate_category(category: str, origin: str | None = None) -> str:
+    """Return ``category`` if it matches :data:`CATEGORY_PATTERN`, else raise
+    InvalidInputError."""
+    if not isinstance(category, str) or CATEGORY_PATTERN.fullmatch(category) is None:
+        where = f" (from {origin})" if origin else ""
+        raise InvalidInputError(
+            f"{category!r}{where} is not a valid category: use 1 to 32 lower-case letters, "
+            "digits, '_' or '-', starting with a letter (e.g. chair, table)"
+        )
+    return category
+
+
 def unit_factor(units: str) -> float:
     """Metres per source unit: 1 for ``m``, 0.01 for ``cm``, 0.001 for ``mm``."""
     try:
@@ -51,13 +71,20 @@ def unit_factor(units: str) -> float:
 
 
 def collect_sources(
-    sources: Sequence[str | Path], ids: Sequence[str] | None = None
+    sources: Sequence[str | Path],
+    ids: Sequence[str] | None = None,
+    category: str | None = None,
 ) -> list[SourceFile]:
-    """Expand ``sources`` into shape files with validated, unique model ids.
+    """Expand ``sources`` into shape files with validated, unique model ids and categories.
 
     Folders are searched recursively for supported suffixes (sorted, so the order is stable).
     ``ids``, when given, names each source in turn; every source must then be a file.
+    ``category`` is every file's category; without it, a file in a sub-folder of a named folder
+    takes the sub-folder's name (``SRC/table/ikea/a.ply`` -> ``table``), any other file
+    :data:`DEFAULT_CATEGORY`.
     """
+    if category is not None:
+        validate_category(category)
     if isinstance(sources, str | Path):
         sources = [sources]
     if not sources:
@@ -84,11 +111,19 @@ def collect_sources(
                     f"{path} holds no supported shape files "
                     f"({' '.join(sorted(SUPPORTED_SUFFIXES))})"
                 )
-            found.extend(SourceFile(validate_model_id(f.stem, str(f)), f) for f in files)
+            found.extend(
+                SourceFile(
+                    validate_model_id(f.stem, str(f)),
+                    f,
+                    category or _folder_category(path, f),
+                )
+                for f in files
+            )
         elif path.is_file():
             _check_suffix(path)
             model_id = path.stem if ids is None else ids[index]
-            found.append(SourceFile(validate_model_id(model_id, str(path)), path))
+            model_id = validate_model_id(model_id, str(path))
+            found.append(SourceFile(model_id, path, category or DEFAULT_CATEGORY))
         else:
             raise ShapeReadError(f"{path}: no such file or folder")
     check_unique(found)
@@ -108,6 +143,16 @@ def check_unique(found: Sequence[SourceFile]) -> None:
             f"model id {item.model_id!r} comes from two files, {first} and {item.path}; "
             "rename one of them or give explicit ids"
         )
+
+
+def _folder_category(folder: Path, file: Path) -> str:
+    """The category a file found in ``folder`` gets from the sub-folder it sits in (the
+    default directly in ``folder``)."""
+    parts = file.relative_to(folder).parts
+    if len(parts) == 1:
+        return DEFAULT_CATEGORY
+    where = f"the sub-folder {folder / parts[0]}; rename it or pass a category (--category)"
+    return validate_category(parts[0], where)
 
 
 def _files_in(folder: Path) -> list[Path]:

@@ -3,6 +3,7 @@
 A library is a directory::
 
     manifest.json                      format version, extractor, timestamps, one record per entry
+                                       (its file, checksums, source, category...)
     entries/<id>-<sha256[:12]>.npz     one entry's arrays, aligned to be memory-mapped (npz.py)
     .lock                              flock(2)ed by writers
 
@@ -16,6 +17,7 @@ manifest references is never modified, only deleted after a newer manifest repla
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -23,6 +25,7 @@ import logging
 import os
 import re
 import zipfile
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -35,6 +38,7 @@ from catalign.errors import LibraryCorruptError, LibraryError
 from catalign.library.entry import LibraryEntry
 from catalign.library.entry_codec import entry_bytes, entry_from_arrays
 from catalign.library.npz import map_file, mapped_arrays
+from catalign.library.sources import CATEGORY_PATTERN, DEFAULT_CATEGORY
 
 logger = logging.getLogger(__name__)
 
@@ -64,6 +68,7 @@ class EntryRecord:
     bbox_min: tuple[float, float, float]
     bbox_max: tuple[float, float, float]
     size: tuple[float, float, float]
+    category: str = DEFAULT_CATEGORY
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -77,11 +82,18 @@ class EntryRecord:
             "bbox_min": list(self.bbox_min),
             "bbox_max": list(self.bbox_max),
             "size": list(self.size),
+            "category": self.category,
         }
 
     @classmethod
-    def from_json(cls, model_id: str, data: Any) -> EntryRecord:
-        """Parse and check one manifest record; raises ValueError, KeyError or TypeError."""
+    def from_json(
+        cls, model_id: str, data: Any, default_category: str = DEFAULT_CATEGORY
+    ) -> EntryRecord:
+        """Parse and check one manifest record (one written before entries had categories is
+        of ``default_category``); raises ValueError, KeyError or TypeError."""
+        category = _typed(_typed(data, dict).get("category", default_category), str)
+        if CATEGORY_PATTERN.fullmatch(category) is None:
+            raise ValueError(f"category {category!r} is not a valid category")
         record = cls(
             file=_typed(data["file"], str),
             sha256=_typed(data["sha256"], str),
@@ -93,6 +105,7 @@ class EntryRecord:
             bbox_min=_vector(data["bbox_min"]),
             bbox_max=_vector(data["bbox_max"]),
             size=_vector(data["size"]),
+            category=category,
         )
         if not _SHA256.fullmatch(record.sha256):
             raise ValueError(f"sha256 {record.sha256!r} is not a hex sha256")
@@ -119,6 +132,11 @@ class Manifest:
     @property
     def ids(self) -> list[str]:
         return sorted(self.entries)
+
+    def categories(self) -> dict[str, int]:
+        """How many entries each category holds, by name."""
+        counts = Counter(record.category for record in self.entries.values())
+        return dict(sorted(counts.items()))
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -155,8 +173,10 @@ class Manifest:
                 f"version {FORMAT_VERSION}; {rebuild_hint(library_dir)}"
             )
         try:
+            # a library written before entries had categories: its manifest's, else chairs
+            default_category = _typed(raw.get("category", DEFAULT_CATEGORY), str)
             entries = {
-                _typed(model_id, str): EntryRecord.from_json(model_id, record)
+                _typed(model_id, str): EntryRecord.from_json(model_id, record, default_category)
                 for model_id, record in _typed(raw["entries"], dict).items()
             }
             return cls(
@@ -256,6 +276,7 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
         bbox_min=_vector(entry.bbox_min),
         bbox_max=_vector(entry.bbox_max),
         size=_vector(entry.size),
+        category=entry.category,
     )
 
 
@@ -291,7 +312,7 @@ def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> Library
         raise corrupt(f"holds model {entry.model_id!r}")
     if (entry.num_points, entry.num_keypoints) != (record.num_points, record.num_keypoints):
         raise corrupt("does not match the point counts in the manifest")
-    return entry
+    return dataclasses.replace(entry, category=record.category)
 
 
 def commit(library_dir: Path, manifest: Manifest) -> None:

@@ -147,15 +147,18 @@ class Engine:
         estimate_scale: bool = False,
         seed: int = 0,
         deadline: Deadline | None = None,
+        category: str | None = None,
     ) -> RegistrationResult:
         """The best library model for ``points`` and its model -> observation pose.
 
         ``top_k`` overrides the configured shortlist size; ``up`` is the world's up direction in
-        the cloud's frame, when known. ``deadline`` is checked before every step and between
-        models: a cancelled or expired one stops the work with
-        :class:`~catalign.errors.DeadlineExceededError`.
+        the cloud's frame, when known; ``category`` restricts the answer to that category's
+        models (an unknown one raises InvalidInputError listing the library's). ``deadline`` is
+        checked before every step and between models: a cancelled or expired one stops the work
+        with :class:`~catalign.errors.DeadlineExceededError`.
         """
         config, clock = self.config, StageClock(deadline)
+        rows = self.library.of_category(category)
         with clock("validate"):
             cloud = validate_cloud(
                 points,
@@ -167,7 +170,7 @@ class Engine:
             frame = cloud.frame
             up = frame.direction(up)
         k = config.top_k if top_k is None else top_k
-        request = Request(k, estimate_scale, seed, clock)
+        request = Request(k, estimate_scale, seed, clock, rows)
 
         oriented, kept = self._oriented(cloud, up, clock)
         searched = self._rounds(kept, oriented, request)
@@ -191,7 +194,9 @@ class Engine:
         result = self.finisher.result(
             decision.answers, kept, candidates, decision.tried, clock.timings
         )
-        return frame.result(replace(result, orientations=tuple(oriented.orientations)))
+        chosen = self.library[result.model_id].category
+        result = replace(result, orientations=tuple(oriented.orientations), category=chosen)
+        return frame.result(result)
 
     def _oriented(
         self,

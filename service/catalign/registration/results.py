@@ -94,7 +94,8 @@ class RegistrationResult:
     proposal first, and ``orientation`` the one the answer was found under (None for methods
     that do not orient the query). ``confidence`` is the probability that the answer is right
     (None for methods, or weights, without a calibrator), read from ``evidence``;
-    ``alternatives`` are the other distinct answers, best first.
+    ``alternatives`` are the other distinct answers, best first; ``category`` is the answer's
+    model's.
     """
 
     model_id: str
@@ -113,6 +114,7 @@ class RegistrationResult:
     confidence: float | None = None
     evidence: Evidence | None = field(default=None, repr=False)
     alternatives: tuple[Alternative, ...] = ()
+    category: str | None = None
 
     @property
     def up(self) -> np.ndarray | None:

@@ -1,15 +1,17 @@
 """``/models``: list, inspect, add and remove the library models the server registers against.
 
 Adding uploads a shape file (mesh or point cloud) with an optional ``model_id`` (default: the
-file stem) and ``units``; the server describes it, writes the library atomically and serves the
-new library from then on. ``/models/{id}/points`` serves a model's surface points (metres, as
-stored), evenly thinned to at most ``max_points``, as raw float32 for viewers and plots. Ids
-are checked against the library's id pattern, also after URL decoding (``..%2Fx`` is refused
-with 422, not routed somewhere else).
+file stem), ``units`` and ``category`` (default: chair); the server describes it, writes the
+library atomically and serves the new library from then on. Listing may keep one
+``category``, and counts every category's models. ``/models/{id}/points`` serves a model's
+surface points (metres, as stored), evenly thinned to at most ``max_points``, as raw float32
+for viewers and plots. Ids are checked against the library's id pattern, also after URL
+decoding (``..%2Fx`` is refused with 422, not routed somewhere else).
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -21,7 +23,14 @@ from catalign.api.inputs import BINARY, MULTIPART, read_upload
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.geometry.io import SUPPORTED_SUFFIXES
-from catalign.library.sources import MODEL_ID_PATTERN, UNIT_FACTORS, validate_model_id
+from catalign.library.sources import (
+    CATEGORY_PATTERN,
+    DEFAULT_CATEGORY,
+    MODEL_ID_PATTERN,
+    UNIT_FACTORS,
+    validate_category,
+    validate_model_id,
+)
 
 router = APIRouter(prefix="/models", tags=["models"])
 
@@ -68,6 +77,13 @@ _UPLOAD_BODY = {
                         "default": "m",
                         "description": "Units of the file's coordinates.",
                     },
+                    "category": {
+                        "type": "string",
+                        "pattern": f"^{CATEGORY_PATTERN.pattern}$",
+                        "default": DEFAULT_CATEGORY,
+                        "description": "The kind of object it is (a short lower-case name: "
+                        "chair, table).",
+                    },
                 },
                 "required": ["file"],
             }
@@ -76,11 +92,25 @@ _UPLOAD_BODY = {
 }
 
 
-@router.get("", response_model=ModelList, responses=error_responses(401))
-async def list_models(service: ServiceDep) -> ModelList:
-    """Every model of the library being served, sorted by id."""
-    models = [ModelPublic.from_entry(e) for e in await service.models()]
-    return ModelList(count=len(models), models=models)
+@router.get("", response_model=ModelList, responses=error_responses(401, 422))
+async def list_models(
+    service: ServiceDep,
+    category: Annotated[
+        str | None,
+        Query(
+            description="Only the models of this category (none of an unknown one).",
+            json_schema_extra={"pattern": f"^{CATEGORY_PATTERN.pattern}$"},
+        ),
+    ] = None,
+) -> ModelList:
+    """Every model of the library being served (or of one ``category``), sorted by id, and how
+    many models each category holds."""
+    if category is not None:
+        validate_category(category)
+    everything = await service.models()
+    models = [ModelPublic.from_entry(e) for e in everything if category in (None, e.category)]
+    counts = Counter(entry.category for entry in everything)
+    return ModelList(count=len(models), models=models, categories=dict(sorted(counts.items())))
 
 
 @router.get(
@@ -134,7 +164,8 @@ async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
     async with read_upload(request, SUPPORTED_SUFFIXES, service.spool) as upload:
         model_id = upload.fields.get("model_id") or FilePath(upload.filename).stem
         units = upload.fields.get("units") or "m"
-        entry = await service.add_model(upload, model_id, units)
+        category = upload.fields.get("category") or DEFAULT_CATEGORY
+        entry = await service.add_model(upload, model_id, units, category)
     return ModelPublic.from_entry(entry)
 
 

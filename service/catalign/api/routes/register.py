@@ -34,6 +34,7 @@ from catalign.api.schemas import (
     RegisterOptions,
     RegisterResponse,
 )
+from catalign.library.sources import CATEGORY_PATTERN
 
 router = APIRouter(tags=["registration"])
 
@@ -83,6 +84,13 @@ def query_options(
         ),
     ] = False,
     seed: Annotated[int, Query(ge=0, le=MAX_SEED, description="RANSAC seed.")] = 0,
+    category: Annotated[
+        str | None,
+        Query(
+            description="Search only this category's models (binary/file bodies; e.g. table).",
+            json_schema_extra={"pattern": f"^{CATEGORY_PATTERN.pattern}$"},
+        ),
+    ] = None,
     min_confidence: Annotated[
         float | None,
         Query(
@@ -100,6 +108,7 @@ def query_options(
             "up": parse_up(up),
             "estimate_scale": estimate_scale,
             "seed": seed,
+            "category": category,
             "min_confidence": min_confidence,
         }
     )

@@ -54,10 +54,13 @@ async function errorMessage(response) {
   return `HTTP ${response.status} ${response.statusText}`;
 }
 
-async function postRegister(file, up) {
+async function postRegister(file, up, category) {
   const body = new FormData();
   body.append('file', file, file.name);
-  const query = up ? `?${new URLSearchParams({ up })}` : '';
+  const options = {};
+  if (up) options.up = up;
+  if (category) options.category = category;
+  const query = Object.keys(options).length ? `?${new URLSearchParams(options)}` : '';
   return (await request(`/register${query}`, { method: 'POST', body })).json();
 }
 
@@ -111,9 +114,10 @@ async function register() {
   const started = performance.now();
   try {
     const up = $('up').value.trim();
+    const category = $('category').value.trim();
     const [observed, answer] = await Promise.all([
       readCloud(chosenFile),
-      postRegister(chosenFile, up),
+      postRegister(chosenFile, up, category),
     ]);
     const model = await fetchModelPoints(answer.model_id);
     drawAnswer(observed, model, answer.pose, parseUp(up) ?? poseUp(answer.pose));
@@ -173,6 +177,7 @@ async function showModel(modelId, button) {
 function showAnswer(answer) {
   $('answer').hidden = false;
   $('model-id').textContent = answer.model_id;
+  $('answer-category').textContent = answer.category ?? '';
   $('fitness').textContent = answer.fitness.toFixed(3);
   $('inlier-rmse').textContent = `${(answer.inlier_rmse * 1000).toFixed(1)} mm`;
   $('inlier-ratio').textContent = answer.inlier_ratio.toFixed(3);

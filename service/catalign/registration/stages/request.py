@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+import numpy as np
+
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.refine import Fit
@@ -60,12 +62,14 @@ class RequestCache:
 @dataclass(frozen=True, eq=False)
 class Request:
     """One call's shortlist size ``k`` (None: every model), whether it estimates scale, its
-    seed, its clock and its cache."""
+    seed, its clock, the library rows it may answer with (a category's; None: every model) and
+    its cache."""
 
     k: int | None
     estimate_scale: bool
     seed: int
     clock: StageClock
+    rows: np.ndarray | None = None
     cache: RequestCache = field(default_factory=RequestCache)
 
 

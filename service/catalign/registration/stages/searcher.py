@@ -45,7 +45,7 @@ class Searcher:
         and its verified poses, best first, weighed by the beliefs in the orientation."""
         turn, seed, clock = search.turn, request.seed, request.clock
         with clock("shortlist"):
-            candidates = shortlist(self.library, search.views, request.k, turn)
+            candidates = shortlist(self.library, search.views, request.k, turn, request.rows)
 
         # Match: keep the headings the leading candidates agree with, match every candidate
         # there, and hypothesise poses from each candidate's matches at each kept heading.

@@ -18,11 +18,16 @@ from catalign.registration.stages.describe import QueryView
 
 
 def shortlist(
-    library: Library, views: list[QueryView], k: int | None, turn: np.ndarray | None
+    library: Library,
+    views: list[QueryView],
+    k: int | None,
+    turn: np.ndarray | None,
+    rows: np.ndarray | None = None,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
-    in library order). ``views`` are the query at each heading; ``turn`` is the levelling turn
-    when ``up`` is known (its second row is ``up`` in the observation frame), else None."""
+    in library order), among ``rows`` (a mask over the library's ids: a category's; None:
+    every model). ``views`` are the query at each heading; ``turn`` is the levelling turn when
+    ``up`` is known (its second row is ``up`` in the observation frame), else None."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -30,4 +35,7 @@ def shortlist(
         [retrieval_scores(library, global_descriptor(v.features), size, height) for v in views],
         axis=0,
     )
-    return [library.ids[i] for i in np.argsort(-scores, kind="stable")[:k]]
+    order = np.argsort(-scores, kind="stable")
+    if rows is not None:
+        order = order[rows[order]]
+    return [library.ids[i] for i in order[:k]]
