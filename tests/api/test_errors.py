@@ -104,6 +104,12 @@ CASES = {
     "read-only add": ("POST", "/models", {"files": {"file": ("c.npy", b"x")}}),
     "read-only remove": ("DELETE", "/models/proc-0000", {}),
     "unknown route": ("GET", "/no/such/route", {}),
+    "wrong method": ("PUT", "/models/proc-0000", {}),
+    "empty up": (
+        "POST",
+        "/register",
+        {"content": _floats(300), "headers": BINARY, "params": {"up": ""}},
+    ),
 }
 EXPECTED = {
     "malformed JSON": (422, "invalid_input"),
@@ -129,6 +135,8 @@ EXPECTED = {
     "read-only add": (403, "read_only"),
     "read-only remove": (403, "read_only"),
     "unknown route": (404, "not_found"),
+    "wrong method": (405, "method_not_allowed"),
+    "empty up": (422, "invalid_input"),
 }
 
 
@@ -142,6 +150,21 @@ def test_refusals_have_the_right_status_and_code(client: httpx.Client, case: str
     assert (response.status_code, body["error"]["code"]) == EXPECTED[case], response.text
     assert body["error"]["message"]
     assert body["request_id"] == response.headers["x-request-id"] == request_id
+
+
+def test_a_wrong_method_names_every_method_the_path_allows(client: httpx.Client) -> None:
+    response = client.put("/models/proc-0000")
+    assert response.status_code == 405
+    assert response.headers["allow"] == "DELETE, GET"
+    assert client.put("/models").headers["allow"] == "GET, POST"
+
+
+def test_an_unknown_model_is_named_without_the_servers_paths(
+    client: httpx.Client, server: Server
+) -> None:
+    message = client.get("/models/no-such-chair").json()["error"]["message"]
+    assert "'no-such-chair'" in message
+    assert str(server.settings.library) not in message and "/" not in message
 
 
 def test_the_point_limit_is_named(client: httpx.Client) -> None:

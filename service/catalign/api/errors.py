@@ -29,6 +29,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from catalign.errors import (
     CatalignError,
@@ -116,6 +117,7 @@ ERROR_TABLE: tuple[tuple[type[Exception], ErrorKind], ...] = (
 
 # Errors Starlette raises itself (unknown route, wrong method), by status.
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 413: "payload_too_large"}
+_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
 
 
 def kind_of(error: BaseException) -> ErrorKind:
@@ -165,15 +167,30 @@ def install_error_handlers(app: FastAPI) -> None:
     async def on_http_error(request: Request, error: Exception) -> JSONResponse:
         assert isinstance(error, StarletteHTTPException)
         code = _HTTP_CODES.get(error.status_code, "http_error")
+        headers = error.headers
+        if error.status_code == 405:
+            headers = {**(headers or {}), "Allow": ", ".join(allowed_methods(app, request))}
         return JSONResponse(
             error_body(code, str(error.detail), request_id_of(request)),
             error.status_code,
-            headers=error.headers,
+            headers=headers,
         )
 
     app.add_exception_handler(CatalignError, on_catalign_error)
     app.add_exception_handler(RequestValidationError, on_validation_error)
     app.add_exception_handler(StarletteHTTPException, on_http_error)
+
+
+def allowed_methods(app: FastAPI, request: Request) -> list[str]:
+    """Every method some route serves at the request's path. Starlette's 405 names only the
+    first route that matched the path, so a path served by two routes (GET and DELETE
+    ``/models/{id}``) would claim to allow one."""
+    allowed = []
+    for method in _METHODS:
+        scope = {**request.scope, "method": method}
+        if any(route.matches(scope)[0] is Match.FULL for route in app.router.routes):
+            allowed.append(method)
+    return allowed
 
 
 def describe_validation_errors(errors: object) -> str:

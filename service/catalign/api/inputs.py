@@ -12,8 +12,8 @@ from __future__ import annotations
 import json
 import re
 import shutil
-from collections.abc import AsyncIterator, Mapping
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Iterator, Mapping
+from contextlib import asynccontextmanager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
@@ -57,6 +57,16 @@ class Upload:
     fields: Mapping[str, str] = field(default_factory=dict)
 
 
+@contextmanager
+def shown_as(path: Path, name: str) -> Iterator[None]:
+    """Name an uploaded file by its original name, not its temporary path, in read errors."""
+    try:
+        yield
+    except ShapeReadError as error:
+        message = str(error).replace(str(path.resolve()), name).replace(str(path), name)
+        raise ShapeReadError(message) from None
+
+
 def media_type(request: Request) -> str:
     return request.headers.get("content-type", "").split(";")[0].strip().lower()
 
@@ -69,14 +79,17 @@ def parse_options(values: Mapping[str, object]) -> RegisterOptions:
         raise InvalidInputError(describe_validation_errors(error.errors())) from None
 
 
+_NUMBER = r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*"
+# The query-parameter form of ``up``: three decimal numbers, comma-separated (the contract
+# states it, so that a client learns it from the schema rather than from a refusal).
+UP_PATTERN = re.compile(f"{_NUMBER},{_NUMBER},{_NUMBER}")
+
+
 def parse_up(text: str | None) -> list[float] | None:
     """``"0,0,1"`` as three numbers (query-parameter form of ``up``)."""
     if text is None:
         return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
+    values = [float(v) for v in text.split(",")] if UP_PATTERN.fullmatch(text) else []
     if len(values) != 3:
         raise InvalidInputError(
             f"up must be three comma-separated numbers like 0,0,1, got {text!r}"

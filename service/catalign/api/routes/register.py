@@ -20,6 +20,7 @@ from catalign.api.inputs import (
     CLOUD_SUFFIXES,
     JSON,
     MULTIPART,
+    UP_PATTERN,
     PointQuery,
     decode_body,
     media_type,
@@ -74,7 +75,10 @@ def query_options(
     ] = None,
     up: Annotated[
         str | None,
-        Query(description="World up direction 'x,y,z', e.g. 0,0,1 (binary/file bodies)."),
+        Query(
+            description="World up direction 'x,y,z', e.g. 0,0,1 (binary/file bodies).",
+            json_schema_extra={"pattern": f"^{UP_PATTERN.pattern}$"},
+        ),
     ] = None,
     estimate_scale: Annotated[
         bool,
