@@ -1,4 +1,4 @@
-"""Shared fixtures: the shared chairs (skipped when absent) and small synthetic shapes."""
+"""Shared fixtures: the shared chairs and tables (skipped when absent), small synthetic shapes."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from catalign.data.shapes import Shape, SharedChairs, default_chairs_root
+from catalign.data.shapes import Shape, SharedChairs, default_chairs_root, default_tables_root
 from catalign.geometry.io import MeshData
 from catalign.geometry.sampling import sample_surface
 
@@ -20,6 +20,15 @@ def chairs_root() -> Path:
     root = default_chairs_root()
     if not (root / "pointclouds").is_dir() or not (root / "meshes").is_dir():
         pytest.skip(f"shared chairs not found at {root} (set CATALIGN_CHAIRS_DIR)")
+    return root
+
+
+@pytest.fixture(scope="session")
+def tables_root() -> Path:
+    """The shared tables folder (point clouds only); skipped when absent."""
+    root = default_tables_root()
+    if not (root / "pointclouds").is_dir():
+        pytest.skip(f"shared tables not found at {root} (set CATALIGN_TABLES_DIR)")
     return root
 
 

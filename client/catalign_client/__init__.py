@@ -49,7 +49,7 @@ from ._exceptions import (
     ServiceUnavailableError,
     TransportError,
 )
-from ._models import AlignResult, Alternative, Candidate, ModelInfo
+from ._models import AlignResult, Alternative, Candidate, ModelInfo, Symmetry
 from ._pointcloud2 import PointCloud2Like
 from ._points import HasPoints, HasVertices, PointsLike
 from ._version import __version__
@@ -78,6 +78,7 @@ __all__ = [
     "PointsLike",
     "ServerError",
     "ServiceUnavailableError",
+    "Symmetry",
     "TransportError",
     "__version__",
 ]

@@ -33,6 +33,36 @@ class Candidate:
     score: float
 
 
+@dataclass(frozen=True, slots=True)
+class Symmetry:
+    """The turns about a model's up under which it looks the same: a rectangular table turned
+    half way round, a square one a quarter turn, a round one by any angle. A pose composed with
+    any of these turns is as right as the pose itself.
+
+    ``order`` is 1 for none, n >= 2 for every turn of 360/n degrees, 0 for any turn;
+    ``yaws_deg`` lists the turns (0 first; empty for order 0).
+    """
+
+    order: int = 1
+    yaws_deg: tuple[float, ...] = (0.0,)
+
+    @property
+    def continuous(self) -> bool:
+        """Whether the model looks the same turned by any angle."""
+        return self.order == 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"order": self.order, "yaws_deg": list(self.yaws_deg)}
+
+    @classmethod
+    def from_json(cls, data: Any) -> Symmetry:
+        body = _mapping(data, "symmetry")
+        return cls(
+            order=_int(body, "order"),
+            yaws_deg=tuple(float(v) for v in _list(body, "yaws_deg")),
+        )
+
+
 class _Posed:
     """The rotation and translation of a ``pose`` (4x4, model -> observation) with a
     ``scale``."""
@@ -112,7 +142,7 @@ class AlignResult(_Posed):
     gave ``min_confidence`` and the confidence is below it (or unknown); the pose is still
     there, and ``reason`` says why in a sentence. ``alternatives`` are up to 3 other distinct
     answers (:class:`Alternative`), best first. ``category`` is the answer's model's category
-    (``None`` from servers that do not report it).
+    and ``symmetry`` its :class:`Symmetry` (``None`` from servers that do not report them).
 
     Usage::
 
@@ -140,12 +170,14 @@ class AlignResult(_Posed):
     reason: str | None = None
     alternatives: list[Alternative] = field(default_factory=list)
     category: str | None = None
+    symmetry: Symmetry | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, the pose as nested lists (the wire format)."""
         return {
             "model_id": self.model_id,
             "category": self.category,
+            "symmetry": None if self.symmetry is None else self.symmetry.to_dict(),
             "pose": self.pose.tolist(),
             "scale": self.scale,
             "fitness": self.fitness,
@@ -221,6 +253,9 @@ class AlignResult(_Posed):
                 for item in (_list(body, "alternatives") if "alternatives" in body else [])
             ],
             category=_optional_str(body, "category"),
+            symmetry=(
+                None if body.get("symmetry") is None else Symmetry.from_json(body["symmetry"])
+            ),
         )
 
 
@@ -230,27 +265,30 @@ class ModelInfo:
 
     Parameters:
         model_id: the library id (the file stem unless given at upload).
-        category: the kind of object it is, e.g. ``"chair"`` or ``"table"``.
         source: the file the entry was built from.
         units: the length unit of the model's coordinates, e.g. ``"m"``.
         num_points: how many surface points the library keeps for it.
         bbox_min, bbox_max, size: its axis-aligned bounding box, in ``units``.
+        category: the kind of object it is, e.g. ``"chair"`` or ``"table"``.
+        symmetry: the turns about its up under which it looks the same.
     """
 
     model_id: str
-    category: str
     source: str
     units: str
     num_points: int
     bbox_min: tuple[float, float, float]
     bbox_max: tuple[float, float, float]
     size: tuple[float, float, float]
+    category: str = "chair"
+    symmetry: Symmetry = Symmetry()
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, as the server sent it."""
         return {
             "model_id": self.model_id,
             "category": self.category,
+            "symmetry": self.symmetry.to_dict(),
             "source": self.source,
             "units": self.units,
             "num_points": self.num_points,
@@ -272,6 +310,9 @@ class ModelInfo:
             bbox_min=_vec3(body, "bbox_min"),
             bbox_max=_vec3(body, "bbox_max"),
             size=_vec3(body, "size"),
+            symmetry=(  # servers before symmetries: none known
+                Symmetry() if body.get("symmetry") is None else Symmetry.from_json(body["symmetry"])
+            ),
         )
 
 

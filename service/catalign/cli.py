@@ -93,11 +93,17 @@ def evaluate(
             "the whole view is turned at random.",
         ),
     ] = False,
+    category: Annotated[
+        str, typer.Option(help="Shared shapes to evaluate on: chair or table.")
+    ] = "chair",
+    tables_dir: Annotated[
+        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="JSON report path.")] = None,
     engine: EngineOptions = None,
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
-    from catalign.data.shapes import SharedChairs
+    from catalign.data.shapes import shared_shapes
     from catalign.evaluation.protocol import VIEW_MODES
     from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
     from catalign.registration.config import parse_options
@@ -110,6 +116,8 @@ def evaluate(
         for name in settings:
             if name not in ("same", "cross"):
                 raise ConfigError(f"unknown setting {name!r}; use same or cross")
+        if category not in ("chair", "table"):
+            raise ConfigError(f"unknown category {category!r}; the shared shapes are chair, table")
         if pose_mode not in VIEW_MODES:
             raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright, so3 or turned")
         up_given = (pose_mode == "upright") if up_prior is None else up_prior
@@ -128,11 +136,14 @@ def evaluate(
             floor=floor,
             table=table,
             engine=engine_config,
+            category=category,
         )
-        report = evaluate(config, SharedChairs(chairs_dir))
+        source = shared_shapes(category, chairs_dir if category == "chair" else tables_dir)
+        report = evaluate(config, source)
     prior = ("" if config.up_prior else "-no-up") + (f"-up-error{up_error:g}" if up_error else "")
     kept = ("-floor" if floor else "") + ("-table" if table else "")
-    path = out or Path("results") / f"evaluate-{method}-{pose_mode}{prior}{kept}.json"
+    of = "" if category == "chair" else f"-{category}"
+    path = out or Path("results") / f"evaluate-{method}{of}-{pose_mode}{prior}{kept}.json"
     write_report(report, path)
     typer.echo(report["table"])
     typer.echo(f"\nreport written to {path}")

@@ -21,6 +21,8 @@ def _align_answer(**overrides: Any) -> dict[str, Any]:
     """A contract-shaped ``POST /register`` answer."""
     answer: dict[str, Any] = {
         "model_id": "chair_0042",
+        "category": "chair",
+        "symmetry": {"order": 1, "yaws_deg": [0.0]},
         "pose": [[0.0, -2.0, 0.0, 0.5], [2.0, 0.0, 0.0, -0.25], [0.0, 0.0, 2.0, 1.0], [0, 0, 0, 1]],
         "scale": 2.0,
         "fitness": 0.91,
@@ -61,6 +63,8 @@ def _model_answer(model_id: str = "chair_0042") -> dict[str, Any]:
         "bbox_min": [-0.25, 0.0, -0.25],
         "bbox_max": [0.25, 0.9, 0.25],
         "size": [0.5, 0.9, 0.5],
+        "category": "chair",
+        "symmetry": {"order": 2, "yaws_deg": [0.0, 180.0]},
     }
 
 

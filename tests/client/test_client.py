@@ -33,6 +33,7 @@ from catalign_client import (
     PermissionDeniedError,
     ServerError,
     ServiceUnavailableError,
+    Symmetry,
     TransportError,
 )
 
@@ -341,6 +342,7 @@ def test_library_calls(make_api, model_answer, tmp_path: Path):
     assert models[1] == ModelInfo(
         "chair_0042", "/library/chair_0042.obj", "m", 2048,
         (-0.25, 0.0, -0.25), (0.25, 0.9, 0.25), (0.5, 0.9, 0.5),
+        "chair", Symmetry(2, (0.0, 180.0)),
     )  # fmt: skip
     assert api.model("a/b").model_id == "a/b"
     cad = tmp_path / "stool.obj"

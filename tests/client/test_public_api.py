@@ -30,6 +30,7 @@ EXPECTED = {
     "PointsLike",
     "ServerError",
     "ServiceUnavailableError",
+    "Symmetry",
     "TransportError",
     "__version__",
 }

@@ -7,15 +7,17 @@ import pytest
 import trimesh
 
 from catalign.data.shapes import (
-    METRIC_HEIGHT_RANGE,
+    METRIC_HEIGHT_RANGES,
     SURFACE_POINTS,
     Shape,
     SharedChairs,
+    SharedTables,
     default_chairs_root,
     metric_height,
     procedural_id,
     procedural_shape,
     seed_of,
+    shared_shapes,
     split_of,
     stable_fraction,
     to_metric,
@@ -59,12 +61,23 @@ def test_split_over_shared_ids(shared_chairs: SharedChairs):
 
 
 def test_metric_height_range():
-    low, high = METRIC_HEIGHT_RANGE
+    low, high = METRIC_HEIGHT_RANGES["chair"]
     assert (low, high) == (0.75, 1.05)
     heights = [metric_height(f"chair-{i}") for i in range(300)]
     assert all(low <= h <= high for h in heights)
     assert max(heights) - min(heights) > 0.2  # actually varies with the id
     assert metric_height("chair-7") == metric_height("chair-7")
+    tables = [metric_height(f"table-{i}", "table") for i in range(300)]
+    assert all(0.45 <= h <= 0.8 for h in tables)
+
+
+def test_shared_tables_load_in_metres_at_a_table_height(tables_root):
+    tables = shared_shapes("table", tables_root)
+    assert isinstance(tables, SharedTables) and len(tables.ids()) >= 10
+    shape = tables.metric(tables.ids("val")[0])
+    assert 0.45 <= shape.height <= 0.8
+    with pytest.raises(ShapeReadError, match="chair or table"):
+        shared_shapes("sofa")
 
 
 def _unit_shape(shape_id: str = "abc") -> Shape:

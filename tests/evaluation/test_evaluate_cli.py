@@ -132,6 +132,29 @@ def test_evaluate_with_floor_records_it(chairs_root: Path, tmp_path: Path):
     assert [row["cases"] for row in report["rows"]] == [1]
 
 
+@pytest.mark.slow
+def test_evaluate_on_tables_scores_to_the_nearest_symmetric_pose(tables_root: Path, tmp_path):
+    out = tmp_path / "tables.json"
+    args = ["evaluate", "--method", "learned", "--category", "table", "--max-shapes", "3"]
+    args += ["--views", "1", "--setting", "same", "--tables-dir", str(tables_root)]
+    result = runner.invoke(app, [*args, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(out.read_text())
+    assert report["config"]["category"] == "table"
+    (row,) = report["rows"]
+    assert row["cases"] == 3 and row["RRE<10"] >= 0
+    # Each case's error is the smallest over the observed table's equivalent poses.
+    assert all(case["rre_deg"] <= 180.0 for case in report["cases"]["same"])
+
+
+def test_an_unknown_category_or_a_missing_tables_folder_exits_2(tmp_path: Path):
+    unknown = runner.invoke(app, ["evaluate", "--category", "sofa"])
+    assert unknown.exit_code == 2 and "unknown category 'sofa'" in unknown.stderr
+    args = ["evaluate", "--category", "table", "--tables-dir", str(tmp_path / "none")]
+    missing = runner.invoke(app, args)
+    assert missing.exit_code == 2 and "CATALIGN_TABLES_DIR" in missing.stderr
+
+
 def test_build_cases_with_floor():
     shapes = {"p3": procedural_shape(3)}
     plain = build_cases(shapes, views=2, seed=5)

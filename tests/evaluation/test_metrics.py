@@ -13,6 +13,7 @@ from catalign.evaluation.metrics import (
 from catalign.evaluation.report import COLUMNS
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.se3 import axis_angle, compose, make_pose, random_rotation, transform
+from catalign.geometry.symmetry import YawSymmetry
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -48,6 +49,20 @@ def test_translation_error_is_measured_at_the_bbox_centre():
     error = canonical_pose_error(estimate, f, np.eye(4), f)
     assert error.rre_deg == pytest.approx(90.0)
     assert error.rte_m == pytest.approx(np.sqrt(2.0))
+
+
+def test_the_rotation_error_is_to_the_nearest_symmetric_pose(pose_gt):
+    # A table turned half way round (about the model's up, +Y) and 3 degrees more.
+    f = frame([0.0, 0.4, 0.0])
+    turned = compose(
+        pose_gt, make_pose(axis_angle(np.array([0.0, 1.0, 0.0]), np.radians(183)), np.zeros(3))
+    )
+    plain = canonical_pose_error(turned, f, pose_gt, f)
+    symmetric = canonical_pose_error(turned, f, pose_gt, f, YawSymmetry(2))
+    assert plain.rre_deg == pytest.approx(177.0)
+    assert symmetric.rre_deg == pytest.approx(3.0)
+    assert symmetric.rte_m == pytest.approx(plain.rte_m)  # the centre is on the axis
+    assert canonical_pose_error(turned, f, pose_gt, f, YawSymmetry(3)).rre_deg > 50
 
 
 def test_rte_is_independent_of_the_world_frame(pose_gt, rng):

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from catalign.geometry.levelling import yaw_rotations
 from catalign.geometry.se3 import make_pose
+from catalign.geometry.symmetry import YawSymmetry
 from catalign.registration.decision.answers import best_other, distinct, promoted, same_answer
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.verify import Scored
@@ -65,3 +67,27 @@ def test_a_clearly_more_confident_alternative_is_promoted() -> None:
     assert promoted([0.4, 0.9], margin=None) == 0  # the option is off
     assert promoted([0.4, None], margin=0.1) == 0  # no calibrator, no confidences
     assert promoted([0.7], margin=0.1) == 0
+
+
+def _turned(model_id: str, turn_deg: float, score: float) -> Scored:
+    """A pose of ``model_id`` turned by ``turn_deg`` about the model's up (+Y) before a fixed
+    placement in the observation."""
+    placement = _yaw(30.0)  # the observation's frame differs from the model's
+    pose = make_pose(placement @ yaw_rotations(np.radians([turn_deg]))[0], np.zeros(3))
+    return Scored(Hypothesis(model_id, pose, np.zeros((0, 2), dtype=np.int64), None), score)
+
+
+def test_a_symmetric_turn_of_the_same_model_is_the_same_answer() -> None:
+    symmetries = {"table": YawSymmetry(2), "square": YawSymmetry(4), "round": YawSymmetry(0)}
+    symmetry_of = symmetries.get
+    assert same_answer(_turned("table", 0, 0.9), _turned("table", 178, 0.8), symmetry_of)
+    assert not same_answer(_turned("table", 0, 0.9), _turned("table", 90, 0.8), symmetry_of)
+    assert same_answer(_turned("square", 0, 0.9), _turned("square", 92, 0.8), symmetry_of)
+    assert same_answer(_turned("round", 0, 0.9), _turned("round", 133, 0.8), symmetry_of)
+    assert not same_answer(_turned("table", 0, 0.9), _turned("table", 180, 0.8))  # no symmetry
+    ranked = [_turned("table", 0, 0.9), _turned("table", 180, 0.85), _turned("round", 0, 0.5)]
+    ranked += [_turned("round", 90, 0.4)]
+    assert [k.score for k in distinct(ranked, 10, symmetry_of=symmetry_of)] == [0.9, 0.5]
+    # The half turn of a rectangular table is no other heading: it leaves no heading margin.
+    assert best_other(ranked, ranked[0], same_model=True, symmetry_of=symmetry_of) == 0.0
+    assert best_other(ranked, ranked[0], same_model=True) == 0.85

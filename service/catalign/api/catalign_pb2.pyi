@@ -32,6 +32,14 @@ class Candidate(_message.Message):
     score: float
     def __init__(self, model_id: _Optional[str] = ..., score: _Optional[float] = ...) -> None: ...
 
+class Symmetry(_message.Message):
+    __slots__ = ("order", "yaws_deg")
+    ORDER_FIELD_NUMBER: _ClassVar[int]
+    YAWS_DEG_FIELD_NUMBER: _ClassVar[int]
+    order: int
+    yaws_deg: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, order: _Optional[int] = ..., yaws_deg: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class Alternative(_message.Message):
     __slots__ = ("model_id", "pose", "scale", "score", "fitness", "confidence")
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
@@ -49,7 +57,7 @@ class Alternative(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., score: _Optional[float] = ..., fitness: _Optional[float] = ..., confidence: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives", "category")
+    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives", "category", "symmetry")
     class TimingsMsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -75,6 +83,7 @@ class RegisterReply(_message.Message):
     REASON_FIELD_NUMBER: _ClassVar[int]
     ALTERNATIVES_FIELD_NUMBER: _ClassVar[int]
     CATEGORY_FIELD_NUMBER: _ClassVar[int]
+    SYMMETRY_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     pose: _containers.RepeatedScalarFieldContainer[float]
     scale: float
@@ -93,14 +102,15 @@ class RegisterReply(_message.Message):
     reason: str
     alternatives: _containers.RepeatedCompositeFieldContainer[Alternative]
     category: str
-    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ...) -> None: ...
+    symmetry: Symmetry
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
 
 class Model(_message.Message):
-    __slots__ = ("model_id", "source", "units", "num_points", "bbox_min", "bbox_max", "size", "category")
+    __slots__ = ("model_id", "source", "units", "num_points", "bbox_min", "bbox_max", "size", "category", "symmetry")
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     UNITS_FIELD_NUMBER: _ClassVar[int]
@@ -109,6 +119,7 @@ class Model(_message.Message):
     BBOX_MAX_FIELD_NUMBER: _ClassVar[int]
     SIZE_FIELD_NUMBER: _ClassVar[int]
     CATEGORY_FIELD_NUMBER: _ClassVar[int]
+    SYMMETRY_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     source: str
     units: str
@@ -117,7 +128,8 @@ class Model(_message.Message):
     bbox_max: _containers.RepeatedScalarFieldContainer[float]
     size: _containers.RepeatedScalarFieldContainer[float]
     category: str
-    def __init__(self, model_id: _Optional[str] = ..., source: _Optional[str] = ..., units: _Optional[str] = ..., num_points: _Optional[int] = ..., bbox_min: _Optional[_Iterable[float]] = ..., bbox_max: _Optional[_Iterable[float]] = ..., size: _Optional[_Iterable[float]] = ..., category: _Optional[str] = ...) -> None: ...
+    symmetry: Symmetry
+    def __init__(self, model_id: _Optional[str] = ..., source: _Optional[str] = ..., units: _Optional[str] = ..., num_points: _Optional[int] = ..., bbox_min: _Optional[_Iterable[float]] = ..., bbox_max: _Optional[_Iterable[float]] = ..., size: _Optional[_Iterable[float]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ...) -> None: ...
 
 class ListModelsReply(_message.Message):
     __slots__ = ("count", "models")

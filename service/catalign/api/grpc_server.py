@@ -79,6 +79,9 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                 catalign_pb2.Model(
                     model_id=e.model_id,
                     category=e.category,
+                    symmetry=catalign_pb2.Symmetry(
+                        order=e.symmetry.order, yaws_deg=e.symmetry.yaws_deg
+                    ),
                     source=e.source,
                     units=e.units,
                     num_points=e.num_points,
@@ -140,6 +143,13 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
     return catalign_pb2.RegisterReply(
         model_id=answer.model_id,
         category=answer.category or "",
+        symmetry=(
+            None
+            if answer.symmetry is None
+            else catalign_pb2.Symmetry(
+                order=answer.symmetry.order, yaws_deg=answer.symmetry.yaws_deg
+            )
+        ),
         pose=_row_major(answer.pose),
         scale=answer.scale,
         fitness=answer.fitness,

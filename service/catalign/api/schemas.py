@@ -19,6 +19,7 @@ from catalign.library.sources import CATEGORY_PATTERN
 from catalign.registration.config import EngineConfig
 
 if TYPE_CHECKING:
+    from catalign.geometry.symmetry import YawSymmetry
     from catalign.library.entry import LibraryEntry
     from catalign.registration.results import Alternative, RegistrationResult
 
@@ -154,8 +155,27 @@ def _below(value: float, limit: float) -> str:
     return repr(value)
 
 
+class SymmetryPublic(BaseModel):
+    """The turns about a model's up under which it looks the same: a pose composed with any of
+    them is as right as the pose itself."""
+
+    order: int = Field(
+        ge=0,
+        description="1: none; n >= 2: every turn of 360/n degrees about the model's up (+Y) "
+        "(2: a rectangular table, 4: a square one); 0: any turn (a round table).",
+    )
+    yaws_deg: list[float] = Field(
+        description="The equivalent turns in degrees, 0 first; empty when any turn is (order 0)."
+    )
+
+    @classmethod
+    def from_symmetry(cls, symmetry: YawSymmetry) -> SymmetryPublic:
+        return cls(order=symmetry.order, yaws_deg=symmetry.yaws_deg)
+
+
 class AlternativePublic(BaseModel):
-    """Another distinct answer: another model, or the same one turned by over 30 degrees."""
+    """Another distinct answer: another model, or the same one turned by over 30 degrees (and
+    not by one of its symmetric turns)."""
 
     model_id: str
     pose: Pose4 = Field(
@@ -187,6 +207,11 @@ class RegisterResponse(BaseModel):
     model_id: str
     category: str | None = Field(
         description="The answer's model's category (the request's, when it named one)."
+    )
+    symmetry: SymmetryPublic | None = Field(
+        default=None,
+        description="The answer's model's symmetry about its up: the pose turned about the "
+        "model's up by any of these yaws is as right.",
     )
     pose: Pose4 = Field(
         description="4x4 row-major model -> observation transform "
@@ -225,7 +250,8 @@ class RegisterResponse(BaseModel):
     )
     alternatives: list[AlternativePublic] = Field(
         description="Up to 3 other distinct answers (another model, or the same one turned by "
-        "more than 30 degrees), best first; empty when there are none."
+        "more than 30 degrees, never by one of its symmetric turns), best first; empty when "
+        "there are none."
     )
     candidates: list[CandidatePublic] = Field(description="Each model tried, best first.")
     timings_ms: dict[str, float] = Field(
@@ -248,6 +274,9 @@ class RegisterResponse(BaseModel):
         return cls(
             model_id=result.model_id,
             category=result.category,
+            symmetry=(
+                None if result.symmetry is None else SymmetryPublic.from_symmetry(result.symmetry)
+            ),
             pose=[[float(v) for v in row] for row in result.pose],
             scale=result.scale,
             fitness=result.fitness,
@@ -274,6 +303,10 @@ class ModelPublic(BaseModel):
 
     model_id: str
     category: str = Field(description="The kind of object it is (chair, table...).")
+    symmetry: SymmetryPublic = Field(
+        description="The turns about its up under which it looks the same, found from its "
+        "surface when it was added."
+    )
     source: str = Field(
         description="The file it was built from, upload:<file name>, or procedural:<seed>."
     )
@@ -288,6 +321,7 @@ class ModelPublic(BaseModel):
         return cls(
             model_id=entry.model_id,
             category=entry.category,
+            symmetry=SymmetryPublic.from_symmetry(entry.symmetry),
             source=entry.source,
             units=entry.units,
             num_points=entry.num_points,

@@ -21,17 +21,15 @@ import dataclasses
 import logging
 import platform
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 import catalign
 from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
-from catalign.api.inputs import PointQuery, Upload, check_cloud
+from catalign.api.inputs import PointQuery, Upload, check_cloud, shown_as
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
 from catalign.api.processes import EngineProcesses, Job, served_engine, warm_up
@@ -39,7 +37,7 @@ from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
 from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
 from catalign.deadline import Deadline
-from catalign.errors import CatalignError, ConfigError, DeadlineExceededError, ShapeReadError
+from catalign.errors import CatalignError, ConfigError, DeadlineExceededError
 from catalign.library.store import manifest_stamp
 from catalign.registration.config import served_config
 from catalign.threads import limit_threads
@@ -181,12 +179,10 @@ class RegistrationService:
         await self.refresh()
         return self.library[model_id]
 
-    async def models(self, category: str | None = None) -> list[LibraryEntry]:
-        """The library's models, sorted by id; only ``category``'s when given."""
+    async def models(self) -> list[LibraryEntry]:
         await self.refresh()
         library = self.library
-        entries = (library[i] for i in library.ids)
-        return [e for e in entries if category is None or e.category == category]
+        return [library[i] for i in library.ids]
 
     async def refresh(self, slot: Slot | None = None) -> None:
         """Load the library again when another process changed it since it was loaded (on a
@@ -249,14 +245,15 @@ class RegistrationService:
     # library changes --------------------------------------------------------------------------
 
     async def add_model(
-        self, upload: Upload, model_id: str, units: str, category: str
+        self, upload: Upload, model_id: str, units: str, category: str | None
     ) -> LibraryEntry:
-        """Describe an uploaded shape and add it as ``model_id`` of ``category``; 409 if the
-        id exists."""
+        """Describe an uploaded shape and add it as ``model_id`` of ``category`` (None: the
+        library's default); 409 if the id exists."""
         from catalign.library.sources import unit_factor, validate_category, validate_model_id
 
         validate_model_id(model_id)
-        validate_category(category)
+        if category is not None:
+            validate_category(category)
         unit_factor(units)
 
         def check(library: Library) -> None:
@@ -343,7 +340,7 @@ class RegistrationService:
             assert query.path is not None
             started = time.perf_counter()
             max_points = self.settings.max_points
-            with _shown_as(query.path, query.filename):
+            with shown_as(query.path, query.filename):
                 points = check_cloud(read_points(query.path, max_points=max_points), max_points)
             timings["read"] = (time.perf_counter() - started) * 1e3
         options = query.options
@@ -369,14 +366,14 @@ class RegistrationService:
         upload: Upload,
         model_id: str,
         units: str,
-        category: str,
+        category: str | None,
     ) -> Library:
         from catalign.library.index import add
         from catalign.library.loaded import load
 
         # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
-        with _shown_as(source, upload.filename):
+        with shown_as(source, upload.filename):
             add(
                 self.settings.library,
                 [source],
@@ -398,13 +395,3 @@ class RegistrationService:
         remove(self.settings.library, [model_id])
         logger.info("removed model %s from %s", model_id, self.settings.library)
         return load(self.settings.library, extractor.fingerprint)
-
-
-@contextmanager
-def _shown_as(path: Path, name: str) -> Iterator[None]:
-    """Name an uploaded file by its original name, not its temporary path, in read errors."""
-    try:
-        yield
-    except ShapeReadError as error:
-        message = str(error).replace(str(path.resolve()), name).replace(str(path), name)
-        raise ShapeReadError(message) from None

@@ -1,12 +1,13 @@
-"""Shape sources: the shared ShapeNet chairs and our own procedural chairs, loaded by id.
+"""Shape sources: the shared ShapeNet chairs and tables and our own procedural chairs, by id.
 
-Both give :class:`Shape` objects in the common canonical chair frame (+Y up, backrest on +Z).
+All give :class:`Shape` objects in the common canonical frame (+Y up, a chair's backrest on +Z).
 The shared meshes come from another release than the point clouds and are turned a quarter
 turn about +Y (backrest on -X): :data:`MESH_TO_CANONICAL` turns them into the common frame on
 load (measured on all 15: ``tests/data/test_shapes.py`` checks every shared chair's backrest).
-The shared chairs come size-normalised (bounding-box diagonal about 1); :func:`to_metric`
-scales a shape to a realistic chair height so that sensor noise and centimetre thresholds mean
-what they say. The train/validation split of the shared chairs is fixed by a hash of the id
+The shared shapes come size-normalised (bounding-box diagonal about 1); :func:`to_metric`
+scales a shape to a realistic height for its category (chairs 0.75-1.05 m, tables 0.45-0.8 m)
+so that sensor noise and centimetre thresholds mean what they say. The train/validation split
+of the shared shapes is fixed by a hash of the id
 (:func:`split_of`), so it never depends on file order or on which files are present.
 """
 
@@ -29,7 +30,8 @@ from catalign.geometry.sampling import sample_surface
 Split = Literal["train", "val"]
 TRAIN_PERCENT = 70
 SURFACE_POINTS = 15_000
-METRIC_HEIGHT_RANGE = (0.75, 1.05)
+# Realistic heights (metres) a size-normalised shape of each category is given.
+METRIC_HEIGHT_RANGES = {"chair": (0.75, 1.05), "table": (0.45, 0.8)}
 # The shared meshes' frame to the point clouds' (a +90 degree turn about +Y: -X goes to +Z).
 MESH_TO_CANONICAL = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 
@@ -66,15 +68,17 @@ def split_of(shape_id: str) -> Split:
     return "train" if stable_fraction(shape_id) * 100 < TRAIN_PERCENT else "val"
 
 
-def metric_height(shape_id: str) -> float:
-    """The realistic height (metres) a size-normalised shape is given, fixed by its id."""
-    low, high = METRIC_HEIGHT_RANGE
+def metric_height(shape_id: str, category: str = "chair") -> float:
+    """The realistic height (metres) a size-normalised shape of ``category`` is given, fixed by
+    its id."""
+    low, high = METRIC_HEIGHT_RANGES[category]
     return low + (high - low) * stable_fraction("height:" + shape_id)
 
 
-def to_metric(shape: Shape, height: float | None = None) -> Shape:
-    """Scale a size-normalised shape so that it stands ``height`` metres tall."""
-    target = metric_height(shape.shape_id) if height is None else height
+def to_metric(shape: Shape, height: float | None = None, category: str = "chair") -> Shape:
+    """Scale a size-normalised shape so that it stands ``height`` metres tall (by default, a
+    height fixed by its id in its ``category``'s range)."""
+    target = metric_height(shape.shape_id, category) if height is None else height
     return shape.scaled(target / shape.height)
 
 
@@ -84,6 +88,14 @@ def default_chairs_root() -> Path:
     if env:
         return Path(env)
     return Path(__file__).resolve().parents[3].parent / "shared" / "data" / "chairs"
+
+
+def default_tables_root() -> Path:
+    """``$CATALIGN_TABLES_DIR``, else ``shared/data/tables`` beside the repository."""
+    env = os.environ.get("CATALIGN_TABLES_DIR")
+    if env:
+        return Path(env)
+    return default_chairs_root().parent / "tables"
 
 
 class SharedChairs:
@@ -96,12 +108,15 @@ class SharedChairs:
         shape = to_metric(chairs.load(val_ids[0]))
     """
 
+    category = "chair"
+    variable = "CATALIGN_CHAIRS_DIR"
+
     def __init__(self, root: str | Path | None = None) -> None:
-        self.root = Path(root) if root is not None else default_chairs_root()
+        self.root = Path(root) if root is not None else self.default_root()
         if not self.root.is_dir():
             raise ShapeReadError(
-                f"shared chairs not found at {self.root}; set CATALIGN_CHAIRS_DIR to the folder "
-                "that holds pointclouds/ and meshes/"
+                f"shared {self.category}s not found at {self.root}; set {self.variable} to the "
+                "folder that holds pointclouds/"
             )
         self._files = {
             p.stem: p
@@ -124,7 +139,36 @@ class SharedChairs:
         try:
             return self._files[shape_id]
         except KeyError:
-            raise ShapeReadError(f"no shared chair with id {shape_id!r} in {self.root}") from None
+            raise ShapeReadError(
+                f"no shared {self.category} with id {shape_id!r} in {self.root}"
+            ) from None
+
+    @staticmethod
+    def default_root() -> Path:
+        return default_chairs_root()
+
+    def metric(self, shape_id: str) -> Shape:
+        """A shape scaled to a realistic height of its category."""
+        return to_metric(self.load(shape_id), category=self.category)
+
+
+class SharedTables(SharedChairs):
+    """The shared ShapeNet tables (``pointclouds/<id>.npy``), in the chairs' frame."""
+
+    category = "table"
+    variable = "CATALIGN_TABLES_DIR"
+
+    @staticmethod
+    def default_root() -> Path:
+        return default_tables_root()
+
+
+def shared_shapes(category: str, root: str | Path | None = None) -> SharedChairs:
+    """The shared shapes of ``category`` (chair or table)."""
+    sources = {"chair": SharedChairs, "table": SharedTables}
+    if category not in sources:
+        raise ShapeReadError(f"no shared shapes of category {category!r}; use chair or table")
+    return sources[category](root)
 
 
 @lru_cache(maxsize=256)

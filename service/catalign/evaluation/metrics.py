@@ -3,7 +3,9 @@
 A category-level pose is compared in the shapes' canonical frames: the estimated pose of the
 chosen library model is judged by where it puts that model's canonical frame (orientation, and
 origin at its bounding-box centre, as in NCC) against where the ground truth puts the observed
-instance's. For the same instance this is the plain pose error.
+instance's. For the same instance this is the plain pose error. The rotation error is to the
+nearest pose equivalent under the observed instance's symmetry about its up (a rectangular
+table turned half way round is as right), as CORSAIR and Scan2CAD measure it.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from scipy.stats import mannwhitneyu
 from catalign.frames import MODEL_UP
 from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.ncc import NCCFrame
-from catalign.geometry.se3 import rotation_error_deg, transform, translation_error
+from catalign.geometry.se3 import transform, translation_error
+from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry
 from catalign.registration.results import Orientation
 
 RRE_THRESHOLDS_DEG = (10.0, 20.0, 30.0)
@@ -39,12 +42,14 @@ def canonical_pose_error(
     model_frame: NCCFrame,
     pose_gt: np.ndarray,
     observed_frame: NCCFrame,
+    symmetry: YawSymmetry = NO_SYMMETRY,
 ) -> PoseError:
-    """RRE and RTE between the estimated and true canonical frames in the observation."""
+    """RRE and RTE between the estimated and true canonical frames in the observation; the
+    RRE to the nearest of the true poses the observed instance's ``symmetry`` makes equal."""
     origin_est = transform(model_frame.centre[None], pose_est)[0]
     origin_gt = transform(observed_frame.centre[None], pose_gt)[0]
     return PoseError(
-        rre_deg=rotation_error_deg(pose_est[:3, :3], pose_gt[:3, :3]),
+        rre_deg=symmetry.rotation_error_deg(pose_est[:3, :3], pose_gt[:3, :3]),
         rte_m=translation_error(origin_est, origin_gt),
     )
 

@@ -34,13 +34,14 @@ import numpy as np
 from tqdm import tqdm
 
 from catalign.data.camera import random_camera
-from catalign.data.shapes import Shape, SharedChairs, to_metric
+from catalign.data.shapes import Shape, SharedChairs
 from catalign.data.views import Floor, PoseMode, random_object_pose, render_view, under_table
 from catalign.errors import DegenerateInputError, InvalidInputError
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
 from catalign.geometry.se3 import make_pose, random_rotation, transform
+from catalign.geometry.symmetry import YawSymmetry, find_yaw_symmetry
 from catalign.registration.results import LibraryShape, Registrar, RegistrationResult
 
 Setting = Literal["same", "cross"]
@@ -80,8 +81,9 @@ class CaseOutcome:
     refused: str | None = None
 
 
-def metric_shapes(chairs: SharedChairs, ids: Sequence[str]) -> dict[str, Shape]:
-    return {i: to_metric(chairs.load(i)) for i in ids}
+def metric_shapes(shapes: SharedChairs, ids: Sequence[str]) -> dict[str, Shape]:
+    """The shared shapes ``ids``, each scaled to a realistic height of its category."""
+    return {i: shapes.metric(i) for i in ids}
 
 
 def build_cases(
@@ -148,3 +150,8 @@ def run_cases(
 
 def frames_of(shapes: dict[str, Shape]) -> dict[str, NCCFrame]:
     return {i: NCCFrame.fit(s.points) for i, s in shapes.items()}
+
+
+def symmetries_of(shapes: dict[str, Shape]) -> dict[str, YawSymmetry]:
+    """Each shape's symmetry about its up, found from its surface as a library entry's is."""
+    return {i: find_yaw_symmetry(s.points) for i, s in shapes.items()}

@@ -4,7 +4,7 @@ timing."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,7 @@ from catalign.evaluation.metrics import (
 )
 from catalign.evaluation.protocol import CaseOutcome
 from catalign.geometry.ncc import NCCFrame
+from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry
 from catalign.registration.decision.confidence import Evidence
 
 # A refused view (too little of the chair in sight) fails every threshold.
@@ -50,12 +51,18 @@ COLUMNS = (
 
 
 def summarise(
-    outcomes: Sequence[CaseOutcome], frames: dict[str, NCCFrame], setting: str
+    outcomes: Sequence[CaseOutcome],
+    frames: dict[str, NCCFrame],
+    setting: str,
+    symmetries: Mapping[str, YawSymmetry] | None = None,
 ) -> dict[str, Any]:
     """One row of the table plus per-case details, for one setting.
 
-    ``frames`` holds the NCC frame of every shape involved (observed and library).
+    ``frames`` holds the NCC frame of every shape involved (observed and library),
+    ``symmetries`` the observed shapes' symmetries (rotation errors are to the nearest
+    equivalent pose; none when absent).
     """
+    symmetries = symmetries or {}
     errors, accuracies, cases, hits = [], [], [], []
     for outcome in outcomes:
         case, result = outcome.case, outcome.result
@@ -64,7 +71,8 @@ def summarise(
             cases.append({"case": case.case_id, "model_id": None, "refused": outcome.refused})
             continue
         model_frame, observed_frame = frames[result.model_id], frames[case.shape_id]
-        error = canonical_pose_error(result.pose, model_frame, case.pose, observed_frame)
+        symmetry = symmetries.get(case.shape_id, NO_SYMMETRY)
+        error = canonical_pose_error(result.pose, model_frame, case.pose, observed_frame, symmetry)
         errors.append(error)
         accuracy = None
         if result.correspondences is not None:
@@ -79,7 +87,7 @@ def summarise(
                 "model_id": other.model_id,
                 "right": is_right(
                     canonical_pose_error(
-                        other.pose, frames[other.model_id], case.pose, observed_frame
+                        other.pose, frames[other.model_id], case.pose, observed_frame, symmetry
                     )
                 ),
                 "confidence": other.confidence,

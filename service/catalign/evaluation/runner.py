@@ -1,4 +1,5 @@
-"""``catalign evaluate``: build both settings from the shared chairs, run a method, report."""
+"""``catalign evaluate``: build both settings from the shared chairs or tables, run a method,
+report."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from catalign.evaluation.protocol import (
     frames_of,
     metric_shapes,
     run_cases,
+    symmetries_of,
 )
 from catalign.evaluation.report import format_table, summarise
 from catalign.geometry.se3 import axis_angle
@@ -44,10 +46,14 @@ class EvaluationConfig:
     floor: bool = False
     table: bool = False
     engine: EngineConfig | None = None
+    category: str = "chair"
 
 
 def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     """Run ``config.method`` on every setting; return the table rows and per-case details.
+
+    ``chairs`` are the shared shapes of ``config.category`` (:class:`SharedChairs` or
+    :class:`~catalign.data.shapes.SharedTables`), observed and in the library alike.
 
     ``max_shapes`` caps the number of observed validation shapes and the size of each library
     (the first ids in sorted order), for quick runs. ``up_prior`` tells the method that world
@@ -70,12 +76,14 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
         table=config.table,
     )
     libraries = {"same": observed, "cross": metric_shapes(chairs, train_ids)}
+    symmetries = symmetries_of(observed)
 
     summaries = []
     for setting in config.settings:
         library = libraries[setting]
         outcomes = run_cases(registrar, library, cases, config.seed, label=setting)
-        summaries.append(summarise(outcomes, frames_of(observed | library), setting))
+        frames = frames_of(observed | library)
+        summaries.append(summarise(outcomes, frames, setting, symmetries))
     rows = [s["row"] for s in summaries]
     return {
         "config": config.__dict__

@@ -6,6 +6,7 @@ where features are computed; an error the library detects prints one sentence, e
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -156,9 +157,22 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
         f"library: {library}\nformat: {manifest.format_version}\n"
         f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"
         f"created: {manifest.created}\nupdated: {manifest.updated}\n"
-        f"models: {len(manifest.entries)}\ncategories: {_counts(manifest) or '(none)'}\n"
+        f"models: {len(manifest.entries)}\ncategories: {_counts(manifest) or '(none)'} "
+        f"(default {manifest.category})\nsymmetric about up: {_symmetric(manifest)}\n"
         f"engine options: {_options(manifest.engine)}"
     )
+
+
+def _symmetric(manifest: Any) -> str:
+    """``12 (half turn 9, quarter turn 2, any turn 1)``: the entries that look the same
+    turned about their up, by symmetry order."""
+    names = {0: "any turn", 2: "half turn", 4: "quarter turn"}
+    orders = Counter(record.symmetry for record in manifest.entries.values())
+    unknown = orders.pop(None, 0)
+    orders.pop(1, None)
+    parts = [f"{names.get(order, f'order {order}')} {n}" for order, n in sorted(orders.items())]
+    text = f"{sum(orders.values())}" + (f" ({', '.join(parts)})" if parts else "")
+    return text + (f", {unknown} not yet known (found when loaded)" if unknown else "")
 
 
 def _counts(manifest: Any) -> str:

@@ -24,6 +24,7 @@ from catalign.errors import DegenerateInputError, ShapeReadError
 from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, DistanceGrid
 from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
+from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry, find_yaw_symmetry
 from catalign.library.retrieval import global_descriptor
 from catalign.library.sources import DEFAULT_CATEGORY, SourceFile, unit_factor
 from catalign.limits import MIN_VOXELS
@@ -47,8 +48,10 @@ class LibraryEntry:
     float32 from the extractor, ``descriptor`` (K,) float32 for shortlisting, and the bounding
     box of the whole source shape, ``grid`` the distance field of ``points`` over that box.
     ``source`` is the file path (or ``procedural:<seed>``), ``source_sha256`` its checksum,
-    ``units`` the unit the source was declared in, ``category`` the kind of object it is (kept
-    in the manifest, not in the entry's file: :mod:`~catalign.library.sources`).
+    ``units`` the unit the source was declared in, ``category`` the kind of object it is and
+    ``symmetry`` the turns about its up under which it looks the same (both kept in the
+    manifest, not in the entry's file: :mod:`~catalign.library.sources`,
+    :mod:`~catalign.geometry.symmetry`).
     """
 
     model_id: str
@@ -64,6 +67,7 @@ class LibraryEntry:
     source_sha256: str
     units: str
     category: str = DEFAULT_CATEGORY
+    symmetry: YawSymmetry = NO_SYMMETRY
 
     @property
     def num_points(self) -> int:
@@ -177,6 +181,7 @@ def describe_shape(
         source=source,
         source_sha256=source_sha256,
         units=units,
+        symmetry=find_yaw_symmetry(points),
     )
 
 

@@ -34,7 +34,7 @@ from catalign.library.entry import (
     describe_procedural,
 )
 from catalign.library.loaded import check_fingerprint
-from catalign.library.sources import collect_sources, unit_factor
+from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_factor
 from catalign.library.store import (
     EntryRecord,
     Manifest,
@@ -88,7 +88,13 @@ def build(
         for s in found
     ]
     return _write(
-        Path(out_dir), extractor, jobs, fresh=True, overwrite=overwrite, progress=progress
+        Path(out_dir),
+        extractor,
+        jobs,
+        fresh=True,
+        overwrite=overwrite,
+        progress=progress,
+        category=category or DEFAULT_CATEGORY,
     )
 
 
@@ -135,18 +141,19 @@ def add(
 ) -> Manifest:
     """Add entries to an existing library, or with ``replace`` replace those whose id exists.
 
-    ``category`` is as :func:`build`'s. Adding an id the library already holds without
-    ``replace`` raises InvalidInputError and changes nothing. ``source_name`` is recorded as the
-    source of a single added file instead of its path (the service names uploads so, not by
-    their temporary files); files with more than ``max_points`` points or vertices are refused
-    (the service's upload limit).
+    ``category`` is as :func:`build`'s; without it, a file not in a category's sub-folder gets
+    the library's default category (its manifest's ``category``). Adding an id the library
+    already holds without ``replace`` raises InvalidInputError and changes nothing.
+    ``source_name`` is recorded as the source of a single added file instead of its path (the
+    service names uploads so, not by their temporary files); files with more than
+    ``max_points`` points or vertices are refused (the service's upload limit).
     """
     library_dir = Path(library_dir)
     unit_factor(units)
-    found = collect_sources(sources, ids, category)
+    current = read_manifest(library_dir)  # no library: fail before the lock creates any file
+    found = collect_sources(sources, ids, category, default=current.category)
     if source_name is not None and len(found) != 1:
         raise InvalidInputError(f"source_name names one file, but {len(found)} were given")
-    read_manifest(library_dir)  # no library: fail before the lock creates any file
     jobs = [
         _Job(
             s.model_id,
@@ -170,8 +177,7 @@ def remove(library_dir: str | Path, ids: Sequence[str]) -> Manifest:
         missing = [i for i in ids if i not in current.entries]
         if missing:
             raise ModelNotFoundError(
-                f"no model {missing[0]!r} in the library at {library_dir} "
-                f"({len(current.entries)} models; see `catalign library list`)"
+                f"no model {missing[0]!r} in the library ({len(current.entries)} models)"
             )
         kept = {i: r for i, r in current.entries.items() if i not in set(ids)}
         manifest = dataclasses.replace(current, updated=utc_now(), entries=kept)
@@ -223,8 +229,10 @@ def _write(
     overwrite: bool = False,
     replace: bool = False,
     progress: bool,
+    category: str = DEFAULT_CATEGORY,
 ) -> Manifest:
-    """Describe ``jobs`` and commit them: a new library (``fresh``) or onto the current one."""
+    """Describe ``jobs`` and commit them: a new library (``fresh``, whose entries added later
+    without a category are of ``category``) or onto the current one."""
     written: set[str] = set()
     with writer_lock(library_dir):
         now = utc_now()
@@ -242,6 +250,7 @@ def _write(
             _check_new_ids(current, jobs, replace, library_dir)
             records = dict(current.entries)
             created, engine = current.created, current.engine
+            category = current.category
         try:
             bar = tqdm(
                 jobs,
@@ -262,6 +271,7 @@ def _write(
                 updated=now,
                 entries=records,
                 engine=engine,
+                category=category,
             )
             commit(library_dir, manifest)
         except Exception:

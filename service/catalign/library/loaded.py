@@ -19,6 +19,7 @@ from catalign.errors import (
     LibraryMismatchError,
     ModelNotFoundError,
 )
+from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
 from catalign.library.store import Manifest, read_entry, read_manifest_bytes, rebuild_hint
 
@@ -80,6 +81,10 @@ class Library:
             )
         return rows
 
+    def symmetry(self, model_id: str) -> YawSymmetry:
+        """The turns about its up under which an entry looks the same."""
+        return self[model_id].symmetry
+
     def __contains__(self, model_id: object) -> bool:
         return model_id in self._entries
 
@@ -88,7 +93,7 @@ class Library:
             return self._entries[model_id]
         except KeyError:
             raise ModelNotFoundError(
-                f"no model {model_id!r} in the library at {self.path} ({len(self)} models)"
+                f"no model {model_id!r} in the library ({len(self)} models)"
             ) from None
 
     def __iter__(self) -> Iterator[LibraryEntry]:

@@ -74,6 +74,7 @@ def collect_sources(
     sources: Sequence[str | Path],
     ids: Sequence[str] | None = None,
     category: str | None = None,
+    default: str = DEFAULT_CATEGORY,
 ) -> list[SourceFile]:
     """Expand ``sources`` into shape files with validated, unique model ids and categories.
 
@@ -81,7 +82,7 @@ def collect_sources(
     ``ids``, when given, names each source in turn; every source must then be a file.
     ``category`` is every file's category; without it, a file in a sub-folder of a named folder
     takes the sub-folder's name (``SRC/table/ikea/a.ply`` -> ``table``), any other file
-    :data:`DEFAULT_CATEGORY`.
+    ``default`` (the library's default category).
     """
     if category is not None:
         validate_category(category)
@@ -115,7 +116,7 @@ def collect_sources(
                 SourceFile(
                     validate_model_id(f.stem, str(f)),
                     f,
-                    category or _folder_category(path, f),
+                    category or _folder_category(path, f, default),
                 )
                 for f in files
             )
@@ -123,7 +124,7 @@ def collect_sources(
             _check_suffix(path)
             model_id = path.stem if ids is None else ids[index]
             model_id = validate_model_id(model_id, str(path))
-            found.append(SourceFile(model_id, path, category or DEFAULT_CATEGORY))
+            found.append(SourceFile(model_id, path, category or default))
         else:
             raise ShapeReadError(f"{path}: no such file or folder")
     check_unique(found)
@@ -145,12 +146,12 @@ def check_unique(found: Sequence[SourceFile]) -> None:
         )
 
 
-def _folder_category(folder: Path, file: Path) -> str:
-    """The category a file found in ``folder`` gets from the sub-folder it sits in (the
-    default directly in ``folder``)."""
+def _folder_category(folder: Path, file: Path, default: str) -> str:
+    """The category a file found in ``folder`` gets from the sub-folder it sits in
+    (``default`` directly in ``folder``)."""
     parts = file.relative_to(folder).parts
     if len(parts) == 1:
-        return DEFAULT_CATEGORY
+        return default
     where = f"the sub-folder {folder / parts[0]}; rename it or pass a category (--category)"
     return validate_category(parts[0], where)
 

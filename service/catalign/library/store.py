@@ -35,6 +35,7 @@ from typing import Any
 
 from catalign.atomic import atomic_write_bytes, fsync_directory
 from catalign.errors import LibraryCorruptError, LibraryError
+from catalign.geometry.symmetry import YawSymmetry, find_yaw_symmetry
 from catalign.library.entry import LibraryEntry
 from catalign.library.entry_codec import entry_bytes, entry_from_arrays
 from catalign.library.npz import map_file, mapped_arrays
@@ -69,6 +70,9 @@ class EntryRecord:
     bbox_max: tuple[float, float, float]
     size: tuple[float, float, float]
     category: str = DEFAULT_CATEGORY
+    symmetry: int | None = None
+    """The entry's :class:`~catalign.geometry.symmetry.YawSymmetry` order; None in a manifest
+    written before entries had one (found again from the entry's points when it is read)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -83,6 +87,7 @@ class EntryRecord:
             "bbox_max": list(self.bbox_max),
             "size": list(self.size),
             "category": self.category,
+            "symmetry": self.symmetry,
         }
 
     @classmethod
@@ -94,6 +99,9 @@ class EntryRecord:
         category = _typed(_typed(data, dict).get("category", default_category), str)
         if CATEGORY_PATTERN.fullmatch(category) is None:
             raise ValueError(f"category {category!r} is not a valid category")
+        symmetry = data.get("symmetry")
+        if symmetry is not None and (type(symmetry) is not int or symmetry < 0):
+            raise ValueError(f"symmetry {symmetry!r} is not an order (0, 1, 2...)")
         record = cls(
             file=_typed(data["file"], str),
             sha256=_typed(data["sha256"], str),
@@ -106,6 +114,7 @@ class EntryRecord:
             bbox_max=_vector(data["bbox_max"]),
             size=_vector(data["size"]),
             category=category,
+            symmetry=symmetry,
         )
         if not _SHA256.fullmatch(record.sha256):
             raise ValueError(f"sha256 {record.sha256!r} is not a hex sha256")
@@ -128,6 +137,8 @@ class Manifest:
     """Engine options the library is served with, over the defaults and under the service's
     own (:func:`~catalign.registration.config.served_config`); ``catalign library configure``
     sets them. Checked when a server applies them, so a bad one can still be cleared."""
+    category: str = DEFAULT_CATEGORY
+    """The category of an entry added without one (``library build --category`` sets it)."""
 
     @property
     def ids(self) -> list[str]:
@@ -146,6 +157,7 @@ class Manifest:
             "updated": self.updated,
             "entries": {i: self.entries[i].to_json() for i in self.ids},
             "engine": self.engine,
+            "category": self.category,
         }
 
     def to_bytes(self) -> bytes:
@@ -173,8 +185,10 @@ class Manifest:
                 f"version {FORMAT_VERSION}; {rebuild_hint(library_dir)}"
             )
         try:
-            # a library written before entries had categories: its manifest's, else chairs
+            # a record written before entries had categories: the manifest's, else a chair
             default_category = _typed(raw.get("category", DEFAULT_CATEGORY), str)
+            if CATEGORY_PATTERN.fullmatch(default_category) is None:
+                raise ValueError(f"category {default_category!r} is not a valid category")
             entries = {
                 _typed(model_id, str): EntryRecord.from_json(model_id, record, default_category)
                 for model_id, record in _typed(raw["entries"], dict).items()
@@ -186,6 +200,7 @@ class Manifest:
                 updated=_typed(raw["updated"], str),
                 entries=entries,
                 engine=_typed(raw.get("engine", {}), dict),
+                category=default_category,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise LibraryCorruptError(
@@ -277,6 +292,7 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
         bbox_max=_vector(entry.bbox_max),
         size=_vector(entry.size),
         category=entry.category,
+        symmetry=entry.symmetry.order,
     )
 
 
@@ -312,7 +328,11 @@ def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> Library
         raise corrupt(f"holds model {entry.model_id!r}")
     if (entry.num_points, entry.num_keypoints) != (record.num_points, record.num_keypoints):
         raise corrupt("does not match the point counts in the manifest")
-    return dataclasses.replace(entry, category=record.category)
+    if record.symmetry is None:
+        symmetry = find_yaw_symmetry(entry.points)
+    else:
+        symmetry = YawSymmetry(record.symmetry)
+    return dataclasses.replace(entry, category=record.category, symmetry=symmetry)
 
 
 def commit(library_dir: Path, manifest: Manifest) -> None:

@@ -194,8 +194,13 @@ class Engine:
         result = self.finisher.result(
             decision.answers, kept, candidates, decision.tried, clock.timings
         )
-        chosen = self.library[result.model_id].category
-        result = replace(result, orientations=tuple(oriented.orientations), category=chosen)
+        chosen = self.library[result.model_id]
+        result = replace(
+            result,
+            orientations=tuple(oriented.orientations),
+            category=chosen.category,
+            symmetry=chosen.symmetry,
+        )
         return frame.result(result)
 
     def _oriented(
@@ -251,7 +256,9 @@ class Engine:
             self.finisher.finish, estimate_scale=request.estimate_scale, cache=request.cache
         )
         with request.clock("icp_score"):
-            decision = decide(found, self.rules, refine=refine, finish=finish)
+            decision = decide(
+                found, self.rules, refine=refine, finish=finish, symmetry_of=self.library.symmetry
+            )
         return Round(tuple(searched), decision)
 
     def _doubts_floor(self, decision: Decision | None) -> bool:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from catalign.geometry.io import MeshData
+from catalign.geometry.symmetry import YawSymmetry
 from catalign.registration.decision.confidence import Evidence
 
 
@@ -94,8 +95,8 @@ class RegistrationResult:
     proposal first, and ``orientation`` the one the answer was found under (None for methods
     that do not orient the query). ``confidence`` is the probability that the answer is right
     (None for methods, or weights, without a calibrator), read from ``evidence``;
-    ``alternatives`` are the other distinct answers, best first; ``category`` is the answer's
-    model's.
+    ``alternatives`` are the other distinct answers, best first; ``category`` and ``symmetry``
+    are the answer's model's (the pose composed with any of its symmetric turns is as right).
     """
 
     model_id: str
@@ -115,6 +116,7 @@ class RegistrationResult:
     evidence: Evidence | None = field(default=None, repr=False)
     alternatives: tuple[Alternative, ...] = ()
     category: str | None = None
+    symmetry: YawSymmetry | None = None
 
     @property
     def up(self) -> np.ndarray | None:

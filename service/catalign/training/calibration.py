@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -36,9 +36,16 @@ from catalign.evaluation.metrics import (
     expected_calibration_error,
     is_right,
 )
-from catalign.evaluation.protocol import TestCase, build_cases, frames_of, metric_shapes
+from catalign.evaluation.protocol import (
+    TestCase,
+    build_cases,
+    frames_of,
+    metric_shapes,
+    symmetries_of,
+)
 from catalign.features.extractor import FeatureExtractor
 from catalign.geometry.ncc import NCCFrame
+from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry
 from catalign.registration.decision.confidence import (
     CALIBRATOR_FILE,
     SIGNALS,
@@ -118,10 +125,17 @@ class Samples:
 
 
 def right_pose(
-    pose: np.ndarray, model_id: str, case: TestCase, frames: dict[str, NCCFrame]
+    pose: np.ndarray,
+    model_id: str,
+    case: TestCase,
+    frames: dict[str, NCCFrame],
+    symmetries: Mapping[str, YawSymmetry] | None = None,
 ) -> bool:
-    """Whether a pose of ``model_id`` is right by the evaluation's criterion."""
-    return is_right(canonical_pose_error(pose, frames[model_id], case.pose, frames[case.shape_id]))
+    """Whether a pose of ``model_id`` is right by the evaluation's criterion (to the nearest
+    pose equivalent under the observed shape's symmetry, in ``symmetries``)."""
+    symmetry = (symmetries or {}).get(case.shape_id, NO_SYMMETRY)
+    error = canonical_pose_error(pose, frames[model_id], case.pose, frames[case.shape_id], symmetry)
+    return is_right(error)
 
 
 def label(
@@ -130,13 +144,14 @@ def label(
     frames: dict[str, NCCFrame],
     samples: Samples,
     kind: str,
+    symmetries: Mapping[str, YawSymmetry] | None = None,
 ) -> None:
     """Add the winner and each alternative of ``result`` to ``samples``."""
     answers = [(result.evidence, result.pose, result.model_id, "winner")]
     answers += [(a.evidence, a.pose, a.model_id, "alternative") for a in result.alternatives]
     for evidence, pose, model_id, rank in answers:
         if evidence is not None:
-            right = right_pose(pose, model_id, case, frames)
+            right = right_pose(pose, model_id, case, frames, symmetries)
             samples.add(evidence, right, f"{kind}/{rank}", case.shape_id)
 
 
@@ -156,7 +171,7 @@ def collect(
     progress: bool = True,
 ) -> Samples:
     """Register views of ``shapes`` in both settings and every pose mode; label the answers."""
-    frames = frames_of(shapes)
+    frames, symmetries = frames_of(shapes), symmetries_of(shapes)
     samples = Samples()
     for library_ids, observed_ids, setting in plans(sorted(shapes)):
         registrar = IndexedRegistrar(extractor, name="learned")
@@ -171,7 +186,7 @@ def collect(
                     result = registrar.engine.register(case.points, up=up, seed=config.seed)
                 except InvalidInputError:
                     continue  # a refused view has no answer to calibrate
-                label(result, case, frames, samples, f"{mode}/{setting}")
+                label(result, case, frames, samples, f"{mode}/{setting}", symmetries)
     return samples
 
 

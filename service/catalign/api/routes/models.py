@@ -25,7 +25,6 @@ from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.geometry.io import SUPPORTED_SUFFIXES
 from catalign.library.sources import (
     CATEGORY_PATTERN,
-    DEFAULT_CATEGORY,
     MODEL_ID_PATTERN,
     UNIT_FACTORS,
     validate_category,
@@ -80,9 +79,9 @@ _UPLOAD_BODY = {
                     "category": {
                         "type": "string",
                         "pattern": f"^{CATEGORY_PATTERN.pattern}$",
-                        "default": DEFAULT_CATEGORY,
                         "description": "The kind of object it is (a short lower-case name: "
-                        "chair, table).",
+                        "chair, table); default: the library's (chair unless it was built with "
+                        "another).",
                     },
                 },
                 "required": ["file"],
@@ -164,7 +163,7 @@ async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
     async with read_upload(request, SUPPORTED_SUFFIXES, service.spool) as upload:
         model_id = upload.fields.get("model_id") or FilePath(upload.filename).stem
         units = upload.fields.get("units") or "m"
-        category = upload.fields.get("category") or DEFAULT_CATEGORY
+        category = upload.fields.get("category") or None  # None: the library's default
         entry = await service.add_model(upload, model_id, units, category)
     return ModelPublic.from_entry(entry)
 

@@ -3,9 +3,10 @@
 Many verified poses say the same thing (one model, one heading, a few millimetres apart); the
 refinement budget and the answer's ``alternatives`` are spent on poses that say something
 different: another model, or the same model turned by more than :data:`DISTINCT_TURN_DEG`
-(a quarter or half turn of a nearly symmetric chair). Among the finished answers, the one
-returned is the winner of the scores unless another is clearly more likely right
-(:func:`promoted`).
+(a quarter or half turn of a nearly symmetric chair), unless the model maps onto itself under
+that turn (a rectangular table turned half way round is the same answer: ``symmetry_of``).
+Among the finished answers, the one returned is the winner of the scores unless another is
+clearly more likely right (:func:`promoted`).
 """
 
 from __future__ import annotations
@@ -15,26 +16,38 @@ from typing import TypeVar
 
 import numpy as np
 
-from catalign.geometry.se3 import rotation_error_deg, split_scale
+from catalign.geometry.se3 import split_scale
+from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry
 from catalign.registration.stages.verify import Scored
 
 # Two poses of one model turned further apart than this are different answers.
 DISTINCT_TURN_DEG = 30.0
 
 Item = TypeVar("Item")
+SymmetryOf = Callable[[str], YawSymmetry]
 
 
-def same_answer(a: Scored, b: Scored) -> bool:
-    """Whether two poses claim the same model at nearly the same orientation."""
-    if a.hypothesis.model_id != b.hypothesis.model_id:
+def no_symmetry(model_id: str) -> YawSymmetry:
+    """The symmetry of a model when none is known: none."""
+    return NO_SYMMETRY
+
+
+def same_answer(a: Scored, b: Scored, symmetry_of: SymmetryOf = no_symmetry) -> bool:
+    """Whether two poses claim the same model at nearly the same orientation, up to a turn
+    under which the model (``symmetry_of`` its id) looks the same."""
+    model_id = a.hypothesis.model_id
+    if model_id != b.hypothesis.model_id:
         return False
     rotation_a = split_scale(a.hypothesis.transform)[0][:3, :3]
     rotation_b = split_scale(b.hypothesis.transform)[0][:3, :3]
-    return rotation_error_deg(rotation_a, rotation_b) <= DISTINCT_TURN_DEG
+    return symmetry_of(model_id).rotation_error_deg(rotation_a, rotation_b) <= DISTINCT_TURN_DEG
 
 
 def distinct(
-    ranked: Sequence[Item], limit: int, scored: Callable[[Item], Scored] = lambda item: item
+    ranked: Sequence[Item],
+    limit: int,
+    scored: Callable[[Item], Scored] = lambda item: item,
+    symmetry_of: SymmetryOf = no_symmetry,
 ) -> list[Item]:
     """The first ``limit`` items of ``ranked`` (best first) whose poses are distinct answers:
     each item is kept unless an earlier kept one claims the same answer. ``scored`` gives an
@@ -43,20 +56,26 @@ def distinct(
     for item in ranked:
         if len(kept) == limit:
             break
-        if not any(same_answer(scored(item), scored(other)) for other in kept):
+        if not any(same_answer(scored(item), scored(other), symmetry_of) for other in kept):
             kept.append(item)
     return kept
 
 
-def best_other(ranked: Sequence[Scored], answer: Scored, *, same_model: bool) -> float:
+def best_other(
+    ranked: Sequence[Scored],
+    answer: Scored,
+    *,
+    same_model: bool,
+    symmetry_of: SymmetryOf = no_symmetry,
+) -> float:
     """The best score in ``ranked`` of a pose that is a different answer from ``answer``:
-    of the same model turned another way (``same_model``), or of another model; 0 when
-    there is none."""
+    of the same model turned another way (``same_model``; a symmetric turn is no other way),
+    or of another model; 0 when there is none."""
     scores = [
         item.score
         for item in ranked
         if (item.hypothesis.model_id == answer.hypothesis.model_id) == same_model
-        and not same_answer(item, answer)
+        and not same_answer(item, answer, symmetry_of)
     ]
     return float(np.max(scores)) if scores else 0.0
 

@@ -70,7 +70,10 @@ class Finisher:
             score=item.score,
             explained=explained,
             covered=covered,
-            heading_margin=best_other(tried, item, same_model=True) / score,
+            heading_margin=best_other(
+                tried, item, same_model=True, symmetry_of=self.library.symmetry
+            )
+            / score,
             model_margin=best_other(tried, item, same_model=False) / score,
             fitness=float(fit.fitness),
             rmse=float(fit.inlier_rmse) / self.icp_distance,

@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from catalign.registration.decision.answers import distinct, promoted
+from catalign.registration.decision.answers import SymmetryOf, distinct, no_symmetry, promoted
 from catalign.registration.decision.confidence import Evidence
 from catalign.registration.stages.refine import Fit
 from catalign.registration.stages.search import Search
@@ -118,17 +118,23 @@ Finish = Callable[[Refined, Sequence[Scored], bool], Finished]
 
 
 def decide(
-    found: Sequence[Found], rules: Rules, *, refine: Refine, finish: Finish
+    found: Sequence[Found],
+    rules: Rules,
+    *,
+    refine: Refine,
+    finish: Finish,
+    symmetry_of: SymmetryOf = no_symmetry,
 ) -> Decision | None:
     """The answer to one search round from its verified poses ``found`` (best first); None
     when nothing was found. ``refine`` gives a found pose's :class:`Refined`, ``finish`` a
     refined answer's :class:`Finished` (against the poses tried; refitted at the observed size
-    when its last argument is true)."""
+    when its last argument is true); ``symmetry_of`` a model's symmetry, under whose turns two
+    poses are one answer."""
     if not found:
         return None
     matched = [item for item in found if not item.swept] or list(found)
-    refined, best = _refined(matched, found, rules, refine)
-    ranked = ranked_answers(refined, best, rules)
+    refined, best = _refined(matched, found, rules, refine, symmetry_of)
+    ranked = ranked_answers(refined, best, rules, symmetry_of)
     sources = {id(r.found.scored) for r in refined}
     tried = [r.scored for r in refined]
     tried += [item.scored for item in matched if id(item.scored) not in sources]
@@ -137,20 +143,24 @@ def decide(
 
 
 def _refined(
-    matched: list[Found], found: Sequence[Found], rules: Rules, refine: Refine
+    matched: list[Found],
+    found: Sequence[Found],
+    rules: Rules,
+    refine: Refine,
+    symmetry_of: SymmetryOf,
 ) -> tuple[list[Refined], list[Refined]]:
     """Steps 1 and 2 of the module docstring: the refined poses, and among them the refined
     best matches (the winner when nothing fits exactly)."""
     leading = matched[: rules.refine]
     leading += [
         item
-        for item in distinct(matched, 1 + rules.alternatives, _scored)
+        for item in distinct(matched, 1 + rules.alternatives, _scored, symmetry_of)
         if not any(item is chosen for chosen in leading)
     ]
     refined = [refine(item) for item in leading]
     best = refined[: min(rules.refine, len(matched))]
     if not any(_fits(r, rules.sure_fitness) for r in refined):
-        for item in swept_to_refine(found, rules.sweep_refine):
+        for item in swept_to_refine(found, rules.sweep_refine, symmetry_of):
             done = refine(item)
             known = any(done.scored is r.scored for r in refined)
             if _fits(done, rules.exact_fitness) and not known:
@@ -180,7 +190,10 @@ def _promoted(
 
 
 def ranked_answers(
-    refined: Sequence[Refined], best: Sequence[Refined], rules: Rules
+    refined: Sequence[Refined],
+    best: Sequence[Refined],
+    rules: Rules,
+    symmetry_of: SymmetryOf = no_symmetry,
 ) -> list[Refined]:
     """The distinct answers among ``refined``, the winner first (step 3 of the module
     docstring): the best-scored of those that fit surely, else exactly, else of ``best``;
@@ -189,15 +202,17 @@ def ranked_answers(
     exact = [r for r in exact if _fits(r, rules.sure_fitness)] or exact
     winner = max(exact or best, key=lambda r: r.scored.score)
     rest = sorted((r for r in refined if r is not winner), key=lambda r: -r.scored.score)
-    return distinct([winner, *rest], 1 + rules.alternatives, lambda r: r.scored)
+    return distinct([winner, *rest], 1 + rules.alternatives, lambda r: r.scored, symmetry_of)
 
 
-def swept_to_refine(found: Sequence[Found], sweep_refine: int) -> list[Found]:
+def swept_to_refine(
+    found: Sequence[Found], sweep_refine: int, symmetry_of: SymmetryOf = no_symmetry
+) -> list[Found]:
     """The ``sweep_refine`` best distinct swept poses among ``found`` (best first), and the
     best swept pose under each orientation: a proposed up believed little weighs its poses
     down, yet the observed instance fits exactly under it when it is the right one."""
     swept = [item for item in found if item.swept]
-    chosen = distinct(swept, sweep_refine, _scored)
+    chosen = distinct(swept, sweep_refine, _scored, symmetry_of)
     for search in dict.fromkeys(item.search for item in swept):
         best = next(item for item in swept if item.search is search)
         if not any(best is item for item in chosen):
