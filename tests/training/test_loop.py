@@ -16,7 +16,7 @@ from catalign.features.resunet import build_model
 from catalign.features.weights import CARD_FILE, WEIGHTS_FILE, load_model
 from catalign.training.batches import pair_features
 from catalign.training.config import TrainConfig
-from catalign.training.loop import train
+from catalign.training.loop import neighbours_within_categories, train
 from catalign.training.loss import hardest_contrastive_loss
 from catalign.training.pairs import PairSampler
 
@@ -117,3 +117,20 @@ def test_corrupt_weights_are_refused(tmp_path, monkeypatch) -> None:
         load_model(config.out)
     card = json.loads((config.out / CARD_FILE).read_text())
     assert card["architecture"]["name"] == "ResUNetSmall"
+
+
+def test_cross_instance_neighbours_stay_within_a_category(tmp_path, monkeypatch) -> None:
+    """Procedural shapes standing in for two categories: each shape's NCC neighbours are of
+    its own category only, and the card counts the shapes of each."""
+    monkeypatch.setenv("CATALIGN_CACHE_DIR", str(tmp_path / "cache"))
+    shapes = {s.shape_id: s for s in (procedural_shape(k) for k in (2, 3, 11, 20, 21))}
+    categories = {"proc-0002": "chair", "proc-0003": "chair", "proc-0020": "chair"}
+    categories |= {"proc-0011": "table", "proc-0021": "table"}
+    train_ids = sorted(set(shapes) - {"proc-0020"})
+    near = neighbours_within_categories(shapes, train_ids, categories)
+    for shape_id, found in near.items():
+        assert found and all(categories[n] == categories[shape_id] for n, _ in found)
+    config = _config(tmp_path / "run", stage1_steps=1, stage2_steps=1)
+    card = train(config, shapes, val_ids=["proc-0020"], progress=False, categories=categories)
+    assert card["categories"] == ["chair", "table"]
+    assert card["training_data"]["categories"] == {"chair": 2, "table": 2}

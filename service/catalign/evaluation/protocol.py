@@ -134,14 +134,18 @@ def run_cases(
     cases: Sequence[TestCase],
     seed: int,
     label: str = "",
+    category: str = "chair",
 ) -> list[CaseOutcome]:
-    """Prepare ``registrar`` with ``library`` and register every case, timing each query."""
-    registrar.prepare([LibraryShape(i, s.points, s.mesh) for i, s in sorted(library.items())])
+    """Prepare ``registrar`` with ``library`` (shapes of ``category``) and register every case
+    naming that category, as a robot whose detector labels the object would; time each."""
+    shapes = sorted(library.items())
+    registrar.prepare([LibraryShape(i, s.points, s.mesh, category) for i, s in shapes])
     outcomes = []
     for case in tqdm(cases, desc=f"{registrar.name} {label}".strip(), unit="case"):
         started = time.perf_counter()
         try:
-            result, refused = registrar.register(case.points, seed=seed), None
+            result = registrar.register(case.points, seed=seed, category=category)
+            refused = None
         except (DegenerateInputError, InvalidInputError) as error:
             result, refused = None, str(error)
         outcomes.append(CaseOutcome(case, result, time.perf_counter() - started, refused))

@@ -81,7 +81,9 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     summaries = []
     for setting in config.settings:
         library = libraries[setting]
-        outcomes = run_cases(registrar, library, cases, config.seed, label=setting)
+        outcomes = run_cases(
+            registrar, library, cases, config.seed, label=setting, category=config.category
+        )
         frames = frames_of(observed | library)
         summaries.append(summarise(outcomes, frames, setting, symmetries))
     rows = [s["row"] for s in summaries]

@@ -48,18 +48,21 @@ class IndexedRegistrar(Registrar):
     def prepare(self, library: Sequence[LibraryShape]) -> None:
         with tempfile.TemporaryDirectory(prefix="catalign-eval-") as folder:
             sources = Path(folder) / "sources"
-            sources.mkdir()
-            for shape in library:
+            for shape in library:  # one sub-folder per category: the build names them so
+                place = sources / shape.category
+                place.mkdir(parents=True, exist_ok=True)
                 if shape.mesh is None:
-                    np.save(sources / f"{shape.model_id}.npy", shape.points.astype(np.float32))
+                    np.save(place / f"{shape.model_id}.npy", shape.points.astype(np.float32))
                 else:
                     mesh = trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False)
-                    mesh.export(sources / f"{shape.model_id}.ply")
+                    mesh.export(place / f"{shape.model_id}.ply")
             build([sources], Path(folder) / "index", self.extractor, progress=False)
             index = load(Path(folder) / "index", self.extractor.fingerprint)
         self.engine = Engine(self.extractor, index, config=self.config, calibrator=self.calibrator)
 
-    def register(self, points: np.ndarray, *, seed: int = 0) -> RegistrationResult:
+    def register(
+        self, points: np.ndarray, *, seed: int = 0, category: str | None = None
+    ) -> RegistrationResult:
         if self.engine is None:
             raise RuntimeError("prepare() the registrar with a library before registering")
-        return self.engine.register(points, up=self.up, seed=seed)
+        return self.engine.register(points, up=self.up, seed=seed, category=category)

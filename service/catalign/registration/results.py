@@ -20,13 +20,14 @@ from catalign.registration.decision.confidence import Evidence
 
 @dataclass(frozen=True)
 class LibraryShape:
-    """A library model as registration needs it: id and surface points in its own frame, and
-    its mesh when it has one (a library samples a mesh itself, as ``catalign library build``
-    samples a CAD file)."""
+    """A library model as registration needs it: id and surface points in its own frame, its
+    mesh when it has one (a library samples a mesh itself, as ``catalign library build``
+    samples a CAD file) and its category."""
 
     model_id: str
     points: np.ndarray
     mesh: MeshData | None = None
+    category: str = "chair"
 
 
 @dataclass(frozen=True)
@@ -139,5 +140,8 @@ class Registrar(ABC):
         """Precompute whatever the method needs per library model."""
 
     @abstractmethod
-    def register(self, points: np.ndarray, *, seed: int = 0) -> RegistrationResult:
-        """Find the best library model for ``points`` and its model-to-observation pose."""
+    def register(
+        self, points: np.ndarray, *, seed: int = 0, category: str | None = None
+    ) -> RegistrationResult:
+        """Find the best library model for ``points`` and its model-to-observation pose, of
+        ``category`` when the query names one (as a detector's label would)."""

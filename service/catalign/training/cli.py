@@ -82,12 +82,19 @@ def train(
     init_from: Annotated[
         Path | None, typer.Option(help="Start from another run's weights (a shared stage 1).")
     ] = TRAIN.init_from,
+    category: Annotated[
+        list[str] | None,
+        typer.Option(help="Shared shapes to train on: chair and/or table (repeat the option)."),
+    ] = None,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
+    tables_dir: Annotated[
+        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
+    ] = None,
 ) -> None:
     """Train the feature extractor; an interrupted run continues from its last checkpoint."""
-    from catalign.data.shapes import SharedChairs
+    from catalign.data.shapes import shared_shapes
     from catalign.training.loop import train as run_training
     from catalign.training.loop import training_shapes
 
@@ -109,10 +116,13 @@ def train(
         validate_every=validate_every,
         init_from=init_from,
         threads=threads,
+        categories=tuple(category or ("chair",)),
     )
     with exit_on_error():
-        shapes, val_ids = training_shapes(config, SharedChairs(chairs_dir))
-        card = run_training(config, shapes, val_ids)
+        roots = {"chair": chairs_dir, "table": tables_dir}
+        sources = {name: shared_shapes(name, roots[name]) for name in config.categories}
+        shapes, val_ids, categories = training_shapes(config, sources)
+        card = run_training(config, shapes, val_ids, categories=categories)
     typer.echo(json.dumps(card["validation"], indent=2))
     typer.echo(f"model written to {out}")
 

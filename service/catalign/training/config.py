@@ -45,6 +45,11 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(50, ge=1)
     validation_pairs: int = Field(16, ge=1)
     threads: int = Field(2, ge=1)
+    categories: tuple[Literal["chair", "table"], ...] = Field(
+        ("chair",),
+        min_length=1,
+        description="shared shapes trained on; NCC positives pair shapes of one category",
+    )
     out: Path = Path("runs/default")
     init_from: Path | None = Field(
         None, description="start from the weights of another run (e.g. a shared stage 1)"

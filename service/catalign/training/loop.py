@@ -13,6 +13,7 @@ import csv
 import json
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from catalign.data.neighbours import shape_neighbours
-from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
+from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs
 from catalign.errors import ConfigError
 from catalign.features.resunet import build_model
 from catalign.training.batches import pair_features
@@ -56,12 +57,34 @@ LOG_COLUMNS = (
 
 
 def training_shapes(
-    config: TrainConfig, chairs: SharedChairs
-) -> tuple[dict[str, Shape], list[str]]:
-    """Metric training shapes (shared train split plus procedural chairs) and validation ids."""
-    shapes = {i: to_metric(chairs.load(i)) for i in chairs.ids()}
-    shapes |= {s.shape_id: s for s in ProceduralChairs(config.procedural)}
-    return shapes, chairs.ids("val")
+    config: TrainConfig, sources: SharedChairs | Mapping[str, SharedChairs]
+) -> tuple[dict[str, Shape], list[str], dict[str, str]]:
+    """Metric training shapes (the shared shapes of every source, each at a height of its
+    category, plus procedural chairs), the validation ids and each shape's category."""
+    if isinstance(sources, SharedChairs):
+        sources = {sources.category: sources}
+    shapes: dict[str, Shape] = {}
+    categories: dict[str, str] = {}
+    val_ids: list[str] = []
+    for category, source in sources.items():
+        shapes |= {i: source.metric(i) for i in source.ids()}
+        categories |= dict.fromkeys(source.ids(), category)
+        val_ids += source.ids("val")
+    procedural = {s.shape_id: s for s in ProceduralChairs(config.procedural)}
+    shapes |= procedural
+    categories |= dict.fromkeys(procedural, "chair")
+    return shapes, val_ids, categories
+
+
+def neighbours_within_categories(
+    shapes: dict[str, Shape], train_ids: list[str], categories: Mapping[str, str]
+) -> dict[str, list[tuple[str, float]]]:
+    """Each shape's 3 nearest training shapes of its own category (EMD in NCC, cached)."""
+    near: dict[str, list[tuple[str, float]]] = {}
+    for category in sorted(set(categories.values())):
+        members = {i: s.points for i, s in shapes.items() if categories[i] == category}
+        near |= shape_neighbours(members, [i for i in train_ids if i in members], k=3)
+    return near
 
 
 def pair_kind(config: TrainConfig, step: int, rng: np.random.Generator) -> PairKind:
@@ -84,14 +107,21 @@ def validation_pairs(
 
 
 def train(
-    config: TrainConfig, shapes: dict[str, Shape], val_ids: list[str], progress: bool = True
+    config: TrainConfig,
+    shapes: dict[str, Shape],
+    val_ids: list[str],
+    progress: bool = True,
+    categories: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) a feature extractor on ``shapes`` less ``val_ids`` (metric shapes in
-    the canonical frame); export the final weights and model card."""
+    the canonical frame); export the final weights and model card. ``categories`` gives each
+    shape's category (all chairs without it): a cross-instance pair takes its NCC positives
+    between shapes of one category, nearest neighbours by EMD within it."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     train_ids = sorted(set(shapes) - set(val_ids))
-    near = shape_neighbours({i: s.points for i, s in shapes.items()}, train_ids, k=3)
+    categories = categories or dict.fromkeys(shapes, "chair")
+    near = neighbours_within_categories(shapes, train_ids, categories)
     sampler = PairSampler(
         shapes,
         {i: [n for n, _ in v] for i, v in near.items()},
@@ -173,10 +203,17 @@ def train(
     card = {
         "training": _plain(config),
         "training_data": {
-            "shared_train_chairs": len([i for i in train_ids if not i.startswith("proc-")]),
+            "shared_train_chairs": len(
+                [i for i in train_ids if not i.startswith("proc-") and categories[i] == "chair"]
+            ),
             "procedural_chairs": config.procedural,
             "validation_chairs": len(val_ids),
+            "categories": {
+                name: sum(categories[i] == name for i in train_ids)
+                for name in sorted(set(categories.values()))
+            },
         },
+        "categories": sorted(set(categories.values())),
         "training_time_s": round(_elapsed_before(log_path) + _init_time(config.init_from), 1),
         "validation": metrics,
         "voxel_size": config.voxel_size,

@@ -67,7 +67,11 @@ class FeatureRegistrar(Registrar):
     def prepare(self, library: Sequence[LibraryShape]) -> None:
         self._library = {shape.model_id: self.describe(shape.points) for shape in library}
 
-    def register(self, points: np.ndarray, *, seed: int = 0) -> RegistrationResult:
+    def register(
+        self, points: np.ndarray, *, seed: int = 0, category: str | None = None
+    ) -> RegistrationResult:
+        """The classic recipe against every model (its library holds one category: the
+        evaluation's, so ``category`` changes nothing)."""
         if not self._library:
             raise RuntimeError("prepare() the registrar with a library before registering")
         started = time.perf_counter()
