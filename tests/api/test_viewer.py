@@ -206,6 +206,7 @@ def test_the_viewer_registers_a_scan_and_draws_the_answer(
 
     text = {name: browser.find_element(By.ID, name).text for name in _ANSWER_FIELDS}
     assert text["model-id"] == "proc-0001" and text["answer-category"] == "chair"
+    assert text["answer-symmetry"] == "no turn"  # proc-0001 looks different turned
     assert float(text["fitness"]) > 0.5
     assert "total" in text["timings"] and len(text["candidates"].splitlines()) == 3
     assert not browser.find_element(By.ID, "error").is_displayed()
@@ -239,7 +240,15 @@ def test_the_viewer_registers_a_scan_and_draws_the_answer(
     wait_for(browser, _error_says("no model of category 'sofa'"), 60, "the unknown category")
 
 
-_ANSWER_FIELDS = ("model-id", "answer-category", "fitness", "inlier-rmse", "timings", "candidates")
+_ANSWER_FIELDS = (
+    "model-id",
+    "answer-category",
+    "answer-symmetry",
+    "fitness",
+    "inlier-rmse",
+    "timings",
+    "candidates",
+)
 
 
 @pytest.mark.slow

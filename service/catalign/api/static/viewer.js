@@ -174,10 +174,19 @@ async function showModel(modelId, button) {
 // ---------------------------------------------------------------------------------------------
 // The answer panel (textContent only: ids and messages are never parsed as HTML).
 
+// The turns about its up under which the answer's model looks the same.
+function symmetryText(symmetry) {
+  if (!symmetry) return '';
+  if (symmetry.order === 0) return 'any turn';
+  if (symmetry.order === 1) return 'no turn';
+  return symmetry.yaws_deg.slice(1).map((yaw) => `${yaw}°`).join(', ');
+}
+
 function showAnswer(answer) {
   $('answer').hidden = false;
   $('model-id').textContent = answer.model_id;
   $('answer-category').textContent = answer.category ?? '';
+  $('answer-symmetry').textContent = symmetryText(answer.symmetry);
   $('fitness').textContent = answer.fitness.toFixed(3);
   $('inlier-rmse').textContent = `${(answer.inlier_rmse * 1000).toFixed(1)} mm`;
   $('inlier-ratio').textContent = answer.inlier_ratio.toFixed(3);
