@@ -6,7 +6,9 @@ validation chairs and tables (``up`` given) are registered twice, naming their c
 naming none. Per setting, mode and observed category it reports the views right (within 10
 degrees, to the nearest pose the observed shape's symmetry makes equal, and 5 cm), the views
 answered from the observed shape itself (*same*), the views answered from the right category,
-and the median seconds per query. It also times the *cross* chair views against a library of
+the answers' mean ``category_confidence`` and the median seconds per query; and how well the
+``category_confidence`` of the answers without a category sent tells a right category from a
+wrong one (AUROC). It also times the *cross* chair views against a library of
 the training chairs alone, the baseline the mixed library is compared with. Prints a markdown
 table and writes it to ``bench/results/categories.md``.
 
@@ -25,6 +27,7 @@ from tqdm import tqdm
 
 from catalign.data.shapes import SharedChairs, SharedTables
 from catalign.data.views import WORLD_UP
+from catalign.evaluation.metrics import auroc
 from catalign.evaluation.protocol import TestCase, build_cases, frames_of, symmetries_of
 from catalign.features.extractor import LearnedExtractor
 from catalign.registration.decision.confidence import find_calibrator
@@ -75,7 +78,7 @@ def main() -> None:
         return registrar.engine
 
     def run(engine: Engine, items: list[TestCase], sent: str | None, label: str) -> dict:
-        right, own, category_right, seconds = [], [], [], []
+        right, own, category_right, seconds, shares = [], [], [], [], []
         for case in tqdm(items, desc=label):
             started = time.perf_counter()
             result = engine.register(case.points, up=WORLD_UP, seed=args.seed, category=sent)
@@ -83,12 +86,16 @@ def main() -> None:
             right.append(right_pose(result.pose, result.model_id, case, frames, symmetries))
             own.append(result.model_id == case.shape_id)
             category_right.append(result.category == category_of[case.shape_id])
+            shares.append(result.category_confidence)
         return {
             "cases": len(items),
             "right": 100 * np.mean(right),
             "own": 100 * np.mean(own),
             "category": 100 * np.mean(category_right),
             "seconds": float(np.median(seconds)),
+            "share": float(np.mean([s for s in shares if s is not None] or [np.nan])),
+            "shares": shares,
+            "category_right": category_right,
         }
 
     rows = []
@@ -114,19 +121,26 @@ def main() -> None:
         "5 cm; own model: the observed shape's own CAD chosen (*same*); category: the answer's "
         "model is of the observed category.",
         "",
-        "| setting | observed | mode | cases | right % | own model % | category % | s/query |",
-        "|---|---|---|---|---|---|---|---|",
+        "| setting | observed | mode | cases | right % | own model % | category % | "
+        "category confidence | s/query |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for setting, observed, mode, row in rows:
         own = f"{row['own']:.1f}" if setting == "same" else "n/a"
         lines.append(
             f"| {setting} | {observed} | {mode} | {row['cases']} | {row['right']:.1f} | {own} | "
-            f"{row['category']:.1f} | {row['seconds']:.3f} |"
+            f"{row['category']:.1f} | {row['share']:.3f} | {row['seconds']:.3f} |"
         )
     lines.append(
         f"| cross | chair | chairs alone | {baseline['cases']} | {baseline['right']:.1f} | n/a | "
-        f"{baseline['category']:.1f} | {baseline['seconds']:.3f} |"
+        f"{baseline['category']:.1f} | {baseline['share']:.3f} | {baseline['seconds']:.3f} |"
     )
+    unsent = [row for _, _, mode, row in rows if mode == "no category"]
+    shares = np.array([s for row in unsent for s in row["shares"]], dtype=float)
+    hits = np.array([h for row in unsent for h in row["category_right"]])
+    known = np.isfinite(shares)
+    separation = auroc(shares[known], hits[known])
+    wrong = shares[known & ~hits]
     cross_chair = {
         mode: row
         for setting, observed, mode, row in rows
@@ -138,6 +152,13 @@ def main() -> None:
         "",
         "Median seconds per query of the *cross* chair views, over the library of the training "
         f"chairs alone: category sent {sent_ratio:.2f}x, no category {none_ratio:.2f}x.",
+        "",
+        f"Without a category sent, {int((~hits).sum())} of {len(hits)} answers are of another "
+        "category; their `category_confidence` "
+        + (f"is {np.median(wrong):.3f} median" if len(wrong) else "does not arise")
+        + f", that of the others {np.median(shares[known & hits]):.3f}; AUROC "
+        + ("n/a" if separation is None else f"{separation:.3f}")
+        + ".",
     ]
     publish("\n".join(lines) + "\n", args.out)
 

@@ -142,7 +142,9 @@ class AlignResult(_Posed):
     gave ``min_confidence`` and the confidence is below it (or unknown); the pose is still
     there, and ``reason`` says why in a sentence. ``alternatives`` are up to 3 other distinct
     answers (:class:`Alternative`), best first. ``category`` is the answer's model's category
-    and ``symmetry`` its :class:`Symmetry` (``None`` from servers that do not report them).
+    and ``symmetry`` its :class:`Symmetry` (``None`` from servers that do not report them);
+    ``category_confidence`` the share of the answers' confidence on that category (near 1 when
+    no model of another category came close; ``None`` without a calibrator).
 
     Usage::
 
@@ -171,6 +173,7 @@ class AlignResult(_Posed):
     alternatives: list[Alternative] = field(default_factory=list)
     category: str | None = None
     symmetry: Symmetry | None = None
+    category_confidence: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-ready data, the pose as nested lists (the wire format)."""
@@ -178,6 +181,7 @@ class AlignResult(_Posed):
             "model_id": self.model_id,
             "category": self.category,
             "symmetry": None if self.symmetry is None else self.symmetry.to_dict(),
+            "category_confidence": self.category_confidence,
             "pose": self.pose.tolist(),
             "scale": self.scale,
             "fitness": self.fitness,
@@ -256,6 +260,7 @@ class AlignResult(_Posed):
             symmetry=(
                 None if body.get("symmetry") is None else Symmetry.from_json(body["symmetry"])
             ),
+            category_confidence=_optional_float(body, "category_confidence"),
         )
 
 

@@ -95,6 +95,8 @@ def test_a_request_naming_a_category_is_answered_from_it_alone(server: Server, v
         ).json()
     assert (anything["model_id"], anything["category"]) == ("proc-0001", "chair")
     assert (table["model_id"], table["category"]) == ("table-7", "table")
+    assert table["category_confidence"] == 1.0  # nothing of another category was searched
+    assert 0.0 < anything["category_confidence"] <= 1.0
     assert [c["model_id"] for c in table["candidates"]] == ["table-7"]
     assert all(a["model_id"] == "table-7" for a in table["alternatives"])
     assert (binary["model_id"], binary["category"]) == ("table-7", "table")
@@ -119,7 +121,7 @@ def test_the_sdk_sends_the_category_and_reads_the_answers(server: Server, view: 
         with pytest.raises(sdk.InvalidInputError, match="chair \\(3\\), table \\(1\\)"):
             client.align(view.points[::4], category="sofa")
     assert (result.model_id, result.category) == ("table-7", "table")
-    assert result.to_dict()["category"] == "table"
+    assert result.to_dict()["category"] == "table" and result.category_confidence == 1.0
     assert [(m.model_id, m.category) for m in tables] == [("table-7", "table")]
 
 
@@ -134,6 +136,7 @@ def test_grpc_takes_the_category_and_answers_with_it(server: Server, view: View)
         with pytest.raises(grpc.RpcError) as refused:
             stub.Register(catalign_pb2.RegisterRequest(**request, category="sofa"))
     assert (table.model_id, table.category) == ("table-7", "table")
+    assert table.category_confidence == 1.0 and table.HasField("category_confidence")
     assert (anything.model_id, anything.category) == ("proc-0001", "chair")
     assert {m.model_id: m.category for m in listed.models}["table-7"] == "table"
     assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT

@@ -23,6 +23,7 @@ def _align_answer(**overrides: Any) -> dict[str, Any]:
         "model_id": "chair_0042",
         "category": "chair",
         "symmetry": {"order": 1, "yaws_deg": [0.0]},
+        "category_confidence": 0.97,
         "pose": [[0.0, -2.0, 0.0, 0.5], [2.0, 0.0, 0.0, -0.25], [0.0, 0.0, 2.0, 1.0], [0, 0, 0, 1]],
         "scale": 2.0,
         "fitness": 0.91,

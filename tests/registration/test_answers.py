@@ -8,7 +8,13 @@ import numpy as np
 from catalign.geometry.levelling import yaw_rotations
 from catalign.geometry.se3 import make_pose
 from catalign.geometry.symmetry import YawSymmetry
-from catalign.registration.decision.answers import best_other, distinct, promoted, same_answer
+from catalign.registration.decision.answers import (
+    best_other,
+    category_share,
+    distinct,
+    promoted,
+    same_answer,
+)
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.verify import Scored
 
@@ -91,3 +97,11 @@ def test_a_symmetric_turn_of_the_same_model_is_the_same_answer() -> None:
     # The half turn of a rectangular table is no other heading: it leaves no heading margin.
     assert best_other(ranked, ranked[0], same_model=True, symmetry_of=symmetry_of) == 0.0
     assert best_other(ranked, ranked[0], same_model=True) == 0.85
+
+
+def test_the_category_confidence_is_the_share_of_confidence_on_the_winners_category() -> None:
+    assert category_share([("table", 0.6), ("table", 0.2), ("chair", 0.2)]) == 0.8
+    assert category_share([("chair", 0.9)]) == 1.0  # nothing else came close
+    assert category_share([("chair", 0.3), ("table", None)]) is None  # no calibrator
+    assert category_share([("chair", 0.0), ("table", 0.0)]) is None
+    assert category_share([]) is None

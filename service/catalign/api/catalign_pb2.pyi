@@ -57,7 +57,7 @@ class Alternative(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., score: _Optional[float] = ..., fitness: _Optional[float] = ..., confidence: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives", "category", "symmetry")
+    __slots__ = ("model_id", "pose", "scale", "fitness", "inlier_rmse", "num_inliers", "inlier_ratio", "candidates", "timings_ms", "request_id", "points_set_aside", "up", "up_estimated", "confidence", "accepted", "reason", "alternatives", "category", "symmetry", "category_confidence")
     class TimingsMsEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -84,6 +84,7 @@ class RegisterReply(_message.Message):
     ALTERNATIVES_FIELD_NUMBER: _ClassVar[int]
     CATEGORY_FIELD_NUMBER: _ClassVar[int]
     SYMMETRY_FIELD_NUMBER: _ClassVar[int]
+    CATEGORY_CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     model_id: str
     pose: _containers.RepeatedScalarFieldContainer[float]
     scale: float
@@ -103,7 +104,8 @@ class RegisterReply(_message.Message):
     alternatives: _containers.RepeatedCompositeFieldContainer[Alternative]
     category: str
     symmetry: Symmetry
-    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ...) -> None: ...
+    category_confidence: float
+    def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ..., category_confidence: _Optional[float] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
     __slots__ = ()

@@ -143,6 +143,7 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
     return catalign_pb2.RegisterReply(
         model_id=answer.model_id,
         category=answer.category or "",
+        category_confidence=answer.category_confidence,
         symmetry=(
             None
             if answer.symmetry is None

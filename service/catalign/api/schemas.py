@@ -208,6 +208,13 @@ class RegisterResponse(BaseModel):
     category: str | None = Field(
         description="The answer's model's category (the request's, when it named one)."
     )
+    category_confidence: float | None = Field(
+        default=None,
+        description="The share of the answers' confidence (the answer's and its "
+        "alternatives') that falls on the answer's category: near 1 when no model of another "
+        "category came close; 1 when the request named the category. Null without a "
+        "calibrator. A ranking signal, not a calibrated probability.",
+    )
     symmetry: SymmetryPublic | None = Field(
         default=None,
         description="The answer's model's symmetry about its up: the pose turned about the "
@@ -274,6 +281,9 @@ class RegisterResponse(BaseModel):
         return cls(
             model_id=result.model_id,
             category=result.category,
+            category_confidence=(
+                None if result.category_confidence is None else float(result.category_confidence)
+            ),
             symmetry=(
                 None if result.symmetry is None else SymmetryPublic.from_symmetry(result.symmetry)
             ),

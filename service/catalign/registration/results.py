@@ -97,7 +97,8 @@ class RegistrationResult:
     that do not orient the query). ``confidence`` is the probability that the answer is right
     (None for methods, or weights, without a calibrator), read from ``evidence``;
     ``alternatives`` are the other distinct answers, best first; ``category`` and ``symmetry``
-    are the answer's model's (the pose composed with any of its symmetric turns is as right).
+    are the answer's model's (the pose composed with any of its symmetric turns is as right),
+    ``category_confidence`` the share of the answers' confidence on that category.
     """
 
     model_id: str
@@ -118,6 +119,7 @@ class RegistrationResult:
     alternatives: tuple[Alternative, ...] = ()
     category: str | None = None
     symmetry: YawSymmetry | None = None
+    category_confidence: float | None = None
 
     @property
     def up(self) -> np.ndarray | None:

@@ -80,6 +80,20 @@ def best_other(
     return float(np.max(scores)) if scores else 0.0
 
 
+def category_share(answers: Sequence[tuple[str, float | None]]) -> float | None:
+    """The share of the finished answers' confidence that falls on the winner's category
+    (``answers``: each one's category and confidence, the winner first): near 1 when every
+    answer that is believed at all is of that category, lower when another category's model
+    came close. None without a confidence for each (no calibrator) or with none above 0."""
+    if not answers or any(confidence is None for _, confidence in answers):
+        return None
+    total = sum(float(confidence or 0.0) for _, confidence in answers)
+    if total <= 0.0:
+        return None
+    chosen = answers[0][0]
+    return sum(float(c or 0.0) for category, c in answers if category == chosen) / total
+
+
 def promoted(confidences: Sequence[float | None], margin: float | None) -> int:
     """Which of the finished answers (the winner of the scores first) to return: the most
     confident one when its confidence beats the winner's by more than ``margin``, else the

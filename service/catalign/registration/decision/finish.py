@@ -18,7 +18,7 @@ import numpy as np
 from catalign.geometry.se3 import scale_of, transform
 from catalign.library.entry import LibraryEntry
 from catalign.library.loaded import Library
-from catalign.registration.decision.answers import best_other
+from catalign.registration.decision.answers import best_other, category_share
 from catalign.registration.decision.confidence import Calibrator, Evidence
 from catalign.registration.decision.rules import Finished, Refined
 from catalign.registration.prepare.validation import CheckedCloud
@@ -102,6 +102,9 @@ class Finisher:
         )
         return pose, self.refiner.fit(pose, search.keypoints)
 
+    def _category(self, finished: Finished) -> str:
+        return self.library[finished.item.hypothesis.model_id].category
+
     def result(
         self,
         finished: Sequence[Finished],
@@ -134,6 +137,9 @@ class Finisher:
             orientation=search.orientation,
             confidence=best.confidence,
             evidence=best.evidence,
+            category_confidence=category_share(
+                [(self._category(f), f.confidence) for f in finished]
+            ),
             alternatives=tuple(
                 Alternative(
                     model_id=other.item.hypothesis.model_id,
