@@ -69,6 +69,18 @@ def test_a_field_of_no_values_is_refused(folder: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    "line", [b"POINTS\x80\x80 1111111111111111111111111111111", b"POINTSX 1", b"DATAX ascii"]
+)
+def test_a_keyword_with_more_after_it_is_refused(line: bytes, folder: Path) -> None:
+    """Open3D takes a line for a keyword when it starts with one: a garbled POINTS line with a
+    huge count made it ask for memory it has not (bad_alloc, found by the long fuzz run)."""
+    path = folder / "near-keyword.pcd"
+    path.write_bytes(pcd_seeds()[2].replace(b"POINTS 50", line))
+    with address_space_capped(), pytest.raises(ShapeReadError, match="is not the"):
+        read_points(path)
+
+
+@pytest.mark.parametrize(
     ("edit", "why"),
     [
         ((b"WIDTH 50\nHEIGHT 1\n", b"HEIGHT 1\nWIDTH 50\n"), "HEIGHT line comes before any WIDTH"),

@@ -21,10 +21,17 @@ from catalign.geometry.headers._common import (
     whole,
 )
 
+# The header's keywords. Open3D matches a line's first word by its start alone
+# (``POINTS\x80 9999`` is a POINTS line to it), so a word that starts with one and is not it
+# is refused rather than read differently from Open3D.
+KEYWORDS = ("VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT")
+KEYWORDS += ("VIEWPOINT", "POINTS", "DATA")
+
 
 def check_pcd(f: File, handle: BinaryIO) -> Declared:
     prefix = handle.read(HEADER_BYTES)
-    lines, data_start = header_lines(f, prefix, lambda w: w[0] == "DATA", "DATA")
+    lines, data_start = header_lines(f, prefix, lambda w: w[0].startswith("DATA"), "DATA")
+    _check_keywords(f, lines)
     values = {w[0]: w[1:] for w in lines if w and not w[0].startswith("#")}
     fields = values.get("FIELDS", values.get("COLUMNS"))
     if fields is None:
@@ -80,6 +87,18 @@ def _pcd_column(
             f"the header's {key} line has {len(column)} values for {len(fields)} FIELDS"
         )
     return column
+
+
+def _check_keywords(f: File, lines: list[list[str]]) -> None:
+    for words in lines:
+        if not words or words[0].startswith("#"):
+            continue
+        near = [k for k in KEYWORDS if words[0].startswith(k) and words[0] != k]
+        if near:
+            raise f.unreadable(
+                f"the header line starting {words[0][:24]!r} is not the {near[0]} keyword it "
+                "begins with"
+            )
 
 
 def _check_count_lines(f: File, keys: list[str]) -> None:
