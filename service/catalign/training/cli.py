@@ -6,14 +6,18 @@ their configurations' (:mod:`catalign.training.config`), the one source of each 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from catalign.cli_support import exit_on_error, options_to
 from catalign.errors import ConfigError
 from catalign.training.config import CalibrationConfig, OrientationConfig, TrainConfig
+
+if TYPE_CHECKING:
+    from catalign.training.loop import ShapeSource
 
 TRAIN, ORIENTATION, CALIBRATION = TrainConfig(), OrientationConfig(), CalibrationConfig()
 
@@ -40,7 +44,13 @@ def train(
     out: Annotated[
         Path, typer.Option(help="Run folder: state, CSV log, final weights.")
     ] = TRAIN.out,
-    model: Annotated[str, typer.Option(help="ResUNetBN2C or ResUNetSmall.")] = TRAIN.model,
+    model: Annotated[
+        str | None,
+        typer.Option(
+            help=f"ResUNetBN2C or ResUNetSmall (default: the --init-from weights', else "
+            f"{TRAIN.model})."
+        ),
+    ] = None,
     curriculum: Annotated[
         str, typer.Option(help="ncc (the paper's) or same-only (the FCGF ablation).")
     ] = TRAIN.curriculum,
@@ -55,8 +65,12 @@ def train(
     ] = TRAIN.stage2_steps,
     batch_size: Annotated[int, typer.Option(min=1, help="Pairs per step.")] = TRAIN.batch_size,
     voxel_size: Annotated[
-        float, typer.Option(help="Voxel size in metres (recorded in the model card).")
-    ] = TRAIN.voxel_size,
+        float | None,
+        typer.Option(
+            help="Voxel size in metres, recorded in the model card (default: the --init-from "
+            f"weights', else {TRAIN.voxel_size})."
+        ),
+    ] = None,
     rotation: Annotated[
         str,
         typer.Option(
@@ -84,8 +98,21 @@ def train(
     ] = TRAIN.init_from,
     category: Annotated[
         list[str] | None,
-        typer.Option(help="Shared shapes to train on: chair and/or table (repeat the option)."),
+        typer.Option(
+            help="Shared shapes to train on: chair and/or table (repeat the option); with "
+            "--data, the category of its files."
+        ),
     ] = None,
+    data: Annotated[
+        Path | None,
+        typer.Option(
+            help="Your own canonically aligned CAD files (+Y up), trained on instead of the "
+            "shared shapes: one category (--category NAME) or one sub-folder per category."
+        ),
+    ] = TRAIN.data,
+    units: Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")] = (
+        TRAIN.units
+    ),
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -94,20 +121,23 @@ def train(
     ] = None,
 ) -> None:
     """Train the feature extractor; an interrupted run continues from its last checkpoint."""
-    from catalign.data.shapes import shared_shapes
     from catalign.training.loop import train as run_training
     from catalign.training.loop import training_shapes
 
+    with exit_on_error():
+        sources = training_sources(category, data, units, chairs_dir, tables_dir)
+        inherited = initial_architecture(init_from)
     config = options_to(
         TrainConfig,
         out=out,
-        model=model,
+        model=model or inherited.get("model", TRAIN.model),
+        conv1_kernel_size=inherited.get("conv1_kernel_size", TRAIN.conv1_kernel_size),
         curriculum=curriculum,
         loss=loss,
         stage1_steps=stage1_steps,
         stage2_steps=stage2_steps,
         batch_size=batch_size,
-        voxel_size=voxel_size,
+        voxel_size=voxel_size or inherited.get("voxel_size", TRAIN.voxel_size),
         procedural=procedural,
         rotation=rotation,
         view_so3_share=view_so3_share,
@@ -116,15 +146,60 @@ def train(
         validate_every=validate_every,
         init_from=init_from,
         threads=threads,
-        categories=tuple(category or ("chair",)),
+        categories=tuple(sources),
+        data=data,
+        units=units,
     )
     with exit_on_error():
-        roots = {"chair": chairs_dir, "table": tables_dir}
-        sources = {name: shared_shapes(name, roots[name]) for name in config.categories}
         shapes, val_ids, categories = training_shapes(config, sources)
         card = run_training(config, shapes, val_ids, categories=categories)
     typer.echo(json.dumps(card["validation"], indent=2))
     typer.echo(f"model written to {out}")
+
+
+def initial_architecture(init_from: Path | None) -> dict[str, object]:
+    """The network and voxel size of the weights a run starts from (read from their card), so
+    that ``--init-from model_store`` needs no other option."""
+    from catalign.features.weights import CARD_FILE
+
+    if init_from is None:
+        return {}
+    card_path = init_from / CARD_FILE
+    if not init_from.is_dir():
+        raise ConfigError(f"--init-from {init_from}: no such folder")
+    if not card_path.is_file():
+        return {}  # a run still training: its settings are in its state
+    training = json.loads(card_path.read_text()).get("training", {})
+    return {k: training[k] for k in ("model", "conv1_kernel_size", "voxel_size") if k in training}
+
+
+def training_sources(
+    category: list[str] | None,
+    data: Path | None,
+    units: str,
+    chairs_dir: Path | None,
+    tables_dir: Path | None,
+) -> Mapping[str, ShapeSource]:
+    """The shapes ``catalign train`` learns from, by category: a user's folder, or else the
+    shared chairs and tables."""
+    from catalign.data.shapes import shared_shapes
+    from catalign.training.cad_folder import cad_folders
+
+    if data is not None:
+        if category and len(category) > 1:
+            raise ConfigError(
+                "--data holds one category (--category NAME) or one sub-folder per category "
+                f"(no --category); got {len(category)} categories"
+            )
+        return cad_folders(data, category[0] if category else None, units)
+    roots = {"chair": chairs_dir, "table": tables_dir}
+    for name in category or ():
+        if name not in roots:
+            raise ConfigError(
+                f"no shared shapes of category {name!r} (there are chair and table); train on "
+                "your own CAD files with --data DIR --category NAME"
+            )
+    return {name: shared_shapes(name, roots[name]) for name in category or ("chair",)}
 
 
 def train_orientation(

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field, model_validator
 
 from catalign.data.views import PoseMode
+from catalign.library.sources import CATEGORY_PATTERN
 from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.decision.confidence import CALIBRATION_DIR
 
 # The calibration's views are drawn from their own seed, apart from the evaluation's 0 and 1.
 CALIBRATION_SEED = 2_000
@@ -45,11 +47,18 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(50, ge=1)
     validation_pairs: int = Field(16, ge=1)
     threads: int = Field(2, ge=1)
-    categories: tuple[Literal["chair", "table"], ...] = Field(
+    categories: tuple[Annotated[str, Field(pattern=f"^{CATEGORY_PATTERN.pattern}$")], ...] = Field(
         ("chair",),
         min_length=1,
-        description="shared shapes trained on; NCC positives pair shapes of one category",
+        description="categories trained on (the shared chair and table, or those of data); "
+        "NCC positives pair shapes of one category",
     )
+    data: Path | None = Field(
+        None,
+        description="a folder of the user's own canonically aligned CAD files, trained on "
+        "instead of the shared shapes (one category, or one sub-folder per category)",
+    )
+    units: Literal["m", "cm", "mm"] = Field("m", description="units of the files in data")
     out: Path = Path("runs/default")
     init_from: Path | None = Field(
         None, description="start from the weights of another run (e.g. a shared stage 1)"
@@ -126,7 +135,7 @@ def _unless_default(config: BaseModel, field: str, option: str) -> str:
 class CalibrationConfig:
     """What ``catalign calibrate`` fits on; ``command()`` is the line that reproduces it."""
 
-    out: Path = DEFAULT_MODEL_DIR / "confidence"
+    out: Path = DEFAULT_MODEL_DIR / CALIBRATION_DIR
     views: int = 2
     seed: int = CALIBRATION_SEED
     pose_modes: tuple[PoseMode, ...] = ("upright", "so3")

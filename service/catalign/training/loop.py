@@ -12,19 +12,22 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from catalign.data.neighbours import shape_neighbours
-from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs
+from catalign.data.shapes import ProceduralChairs, Shape, Split
 from catalign.errors import ConfigError
+from catalign.features.orientation import ORIENTATION_DIR
 from catalign.features.resunet import build_model
+from catalign.registration.decision.confidence import CALIBRATION_DIR
 from catalign.training.batches import pair_features
 from catalign.training.checkpoint import (
     CARD_FILE,
@@ -56,12 +59,22 @@ LOG_COLUMNS = (
 )
 
 
+class ShapeSource(Protocol):
+    """Shapes of one category by id (the shared chairs or tables, a user's CAD folder)."""
+
+    category: str
+
+    def ids(self, split: Split | None = None) -> list[str]: ...
+
+    def metric(self, shape_id: str) -> Shape: ...
+
+
 def training_shapes(
-    config: TrainConfig, sources: SharedChairs | Mapping[str, SharedChairs]
+    config: TrainConfig, sources: ShapeSource | Mapping[str, ShapeSource]
 ) -> tuple[dict[str, Shape], list[str], dict[str, str]]:
     """Metric training shapes (the shared shapes of every source, each at a height of its
     category, plus procedural chairs), the validation ids and each shape's category."""
-    if isinstance(sources, SharedChairs):
+    if not isinstance(sources, Mapping):
         sources = {sources.category: sources}
     shapes: dict[str, Shape] = {}
     categories: dict[str, str] = {}
@@ -137,7 +150,13 @@ def train(
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     start = _resume(config, model, optimizer)
     if start == 0 and config.init_from is not None:
-        model.load_state_dict(_initial_weights(config.init_from))
+        try:
+            model.load_state_dict(_initial_weights(config.init_from))
+        except RuntimeError:
+            raise ConfigError(
+                f"--init-from {config.init_from} holds weights of another network than "
+                f"{config.model} (kernel {config.conv1_kernel_size}); pass its --model"
+            ) from None
     loss_fn = LOSSES[config.loss]
     log_path = config.out / "log.csv"
     _truncate_log(log_path, start)
@@ -213,14 +232,33 @@ def train(
                 for name in sorted(set(categories.values()))
             },
         },
-        "categories": sorted(set(categories.values())),
+        "categories": sorted(set(categories.values()) | set(_init_categories(config.init_from))),
         "training_time_s": round(_elapsed_before(log_path) + _init_time(config.init_from), 1),
         "validation": metrics,
         "voxel_size": config.voxel_size,
     }
     if config.init_from is not None:
         card["initialised_from"] = _init_card(config.init_from)
+        card["carried_from_init"] = _carry_companions(config.init_from, config.out)
     return export_model(config.out, model, card)
+
+
+# What serving reads beside the features' weights; a run started from shipped weights carries
+# them, so that its folder serves as ``--model-dir`` at once.
+COMPANIONS = (ORIENTATION_DIR, CALIBRATION_DIR)
+
+
+def _carry_companions(init_from: Path, out: Path) -> list[str]:
+    """Copy the orientation networks and the calibrator of ``init_from`` into ``out`` (where it
+    has none of its own); the names of those carried. The orientation networks read occupancy,
+    not features, so they serve as they are; the calibrator was fitted on the old features'
+    scores and stays an estimate until ``catalign calibrate`` runs on the new ones."""
+    carried = []
+    for name in COMPANIONS:
+        if (init_from / name).is_dir() and not (out / name).exists():
+            shutil.copytree(init_from / name, out / name)
+            carried.append(name)
+    return carried
 
 
 def _resume(config: TrainConfig, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> int:
@@ -259,6 +297,14 @@ def _init_card(run: Path) -> dict[str, Any]:
     """The model card of the run this one started from (its training counts in the total)."""
     path = run / CARD_FILE
     return json.loads(path.read_text()) if path.is_file() else {"run": str(run)}
+
+
+def _init_categories(run: Path | None) -> list[str]:
+    """The categories the starting weights had learnt (chairs for a card that names none)."""
+    if run is None:
+        return []
+    card = _init_card(run)
+    return list(card.get("categories", ["chair"] if "training" in card else []))
 
 
 def _init_time(run: Path | None) -> float:

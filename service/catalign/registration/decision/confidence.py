@@ -29,6 +29,8 @@ import numpy as np
 from catalign.errors import ConfigError
 
 CALIBRATOR_FILE = "calibrator.json"
+# The calibrator's folder beside the feature weights it was fitted on.
+CALIBRATION_DIR = "confidence"
 FORMAT_VERSION = 3
 # Margins are capped: an answer ten times behind another is as wrong as one twice behind.
 MAX_MARGIN = 2.0
@@ -231,5 +233,5 @@ class Calibrator:
 
 def find_calibrator(model_dir: Path) -> Calibrator | None:
     """The calibrator stored with the weights in ``model_dir/confidence/``, if there is one."""
-    path = model_dir / "confidence" / CALIBRATOR_FILE
+    path = model_dir / CALIBRATION_DIR / CALIBRATOR_FILE
     return Calibrator.load(path) if path.is_file() else None
