@@ -14,7 +14,7 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import AsyncIterator, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Self
 from urllib.parse import quote
@@ -147,8 +147,11 @@ class _BaseClient:
         return Request("POST", "/models", files=upload(path), data=data or None, idempotent=False)
 
     @staticmethod
-    def _models_request(category: str | None) -> Request:
-        params = None if category is None else {"category": category}
+    def _models_request(category: str | None, page_size: int, cursor: str | None) -> Request:
+        if isinstance(page_size, bool) or not isinstance(page_size, int) or page_size < 1:
+            raise ValueError(f"page_size must be a positive integer, got {page_size!r}")
+        fields = {"category": category, "limit": page_size, "cursor": cursor}
+        params = {name: value for name, value in fields.items() if value is not None}
         return Request("GET", "/models", params=params)
 
     def _model_points_request(self, model_id: str, *, max_points: int) -> Request:
@@ -359,9 +362,25 @@ class Client(_BaseClient):
         )
         return self._result(self._call(request), up)
 
-    def models(self, *, category: str | None = None) -> list[ModelInfo]:
-        """Every model of the server's library, or only those of ``category``."""
-        return parse_models(self._call(self._models_request(category)))
+    def models(self, *, category: str | None = None, page_size: int = 1000) -> list[ModelInfo]:
+        """Every model of the server's library, or only those of ``category``, sorted by id
+        (fetched ``page_size`` at a time; see :meth:`iter_models` to handle them as they come)."""
+        return list(self.iter_models(category=category, page_size=page_size))
+
+    def iter_models(
+        self, *, category: str | None = None, page_size: int = 1000
+    ) -> Iterator[ModelInfo]:
+        """The library's models one by one, fetching the next page of ``page_size`` when one is
+        used up: a library of 100,000 models never sits in memory at once. A model added or
+        removed meanwhile moves no other: none is given twice, none that stayed is missed."""
+        cursor: str | None = None
+        while True:
+            page, cursor = parse_models(
+                self._call(self._models_request(category, page_size, cursor))
+            )
+            yield from page
+            if cursor is None:
+                return
 
     def model(self, model_id: str) -> ModelInfo:
         """One library model; :class:`NotFoundError` when there is none with that id."""
@@ -519,9 +538,24 @@ class AsyncClient(_BaseClient):
         )
         return self._result(await self._call(request), up)
 
-    async def models(self, *, category: str | None = None) -> list[ModelInfo]:
+    async def models(
+        self, *, category: str | None = None, page_size: int = 1000
+    ) -> list[ModelInfo]:
         """See :meth:`Client.models`."""
-        return parse_models(await self._call(self._models_request(category)))
+        return [m async for m in self.iter_models(category=category, page_size=page_size)]
+
+    async def iter_models(
+        self, *, category: str | None = None, page_size: int = 1000
+    ) -> AsyncIterator[ModelInfo]:
+        """See :meth:`Client.iter_models`."""
+        cursor: str | None = None
+        while True:
+            request = self._models_request(category, page_size, cursor)
+            page, cursor = parse_models(await self._call(request))
+            for model in page:
+                yield model
+            if cursor is None:
+                return
 
     async def model(self, model_id: str) -> ModelInfo:
         """See :meth:`Client.model`."""

@@ -321,9 +321,12 @@ class ModelInfo:
         )
 
 
-def parse_models(data: Any) -> list[ModelInfo]:
-    """Parse the body of ``GET /models``."""
-    return [ModelInfo.from_json(item) for item in _list(_mapping(data, "models answer"), "models")]
+def parse_models(data: Any) -> tuple[list[ModelInfo], str | None]:
+    """Parse one page of ``GET /models``: its models and the cursor of the next page (None on
+    the last page, and from servers that answer in one page)."""
+    body = _mapping(data, "models answer")
+    models = [ModelInfo.from_json(item) for item in _list(body, "models")]
+    return models, _optional_str(body, "next_cursor")
 
 
 def parse_removed_count(data: Any) -> int:

@@ -108,8 +108,14 @@ class RegisterReply(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., pose: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., fitness: _Optional[float] = ..., inlier_rmse: _Optional[float] = ..., num_inliers: _Optional[int] = ..., inlier_ratio: _Optional[float] = ..., candidates: _Optional[_Iterable[_Union[Candidate, _Mapping]]] = ..., timings_ms: _Optional[_Mapping[str, float]] = ..., request_id: _Optional[str] = ..., points_set_aside: _Optional[int] = ..., up: _Optional[_Iterable[float]] = ..., up_estimated: _Optional[bool] = ..., confidence: _Optional[float] = ..., accepted: _Optional[bool] = ..., reason: _Optional[str] = ..., alternatives: _Optional[_Iterable[_Union[Alternative, _Mapping]]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ..., category_confidence: _Optional[float] = ...) -> None: ...
 
 class ListModelsRequest(_message.Message):
-    __slots__ = ()
-    def __init__(self) -> None: ...
+    __slots__ = ("category", "page_size", "page_token")
+    CATEGORY_FIELD_NUMBER: _ClassVar[int]
+    PAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    category: str
+    page_size: int
+    page_token: str
+    def __init__(self, category: _Optional[str] = ..., page_size: _Optional[int] = ..., page_token: _Optional[str] = ...) -> None: ...
 
 class Model(_message.Message):
     __slots__ = ("model_id", "source", "units", "num_points", "bbox_min", "bbox_max", "size", "category", "symmetry")
@@ -134,9 +140,13 @@ class Model(_message.Message):
     def __init__(self, model_id: _Optional[str] = ..., source: _Optional[str] = ..., units: _Optional[str] = ..., num_points: _Optional[int] = ..., bbox_min: _Optional[_Iterable[float]] = ..., bbox_max: _Optional[_Iterable[float]] = ..., size: _Optional[_Iterable[float]] = ..., category: _Optional[str] = ..., symmetry: _Optional[_Union[Symmetry, _Mapping]] = ...) -> None: ...
 
 class ListModelsReply(_message.Message):
-    __slots__ = ("count", "models")
+    __slots__ = ("count", "models", "next_page_token", "total")
     COUNT_FIELD_NUMBER: _ClassVar[int]
     MODELS_FIELD_NUMBER: _ClassVar[int]
+    NEXT_PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_FIELD_NUMBER: _ClassVar[int]
     count: int
     models: _containers.RepeatedCompositeFieldContainer[Model]
-    def __init__(self, count: _Optional[int] = ..., models: _Optional[_Iterable[_Union[Model, _Mapping]]] = ...) -> None: ...
+    next_page_token: str
+    total: int
+    def __init__(self, count: _Optional[int] = ..., models: _Optional[_Iterable[_Union[Model, _Mapping]]] = ..., next_page_token: _Optional[str] = ..., total: _Optional[int] = ...) -> None: ...

@@ -25,10 +25,12 @@ from catalign.api.errors import INTERNAL, kind_of, message_of
 from catalign.api.inputs import decode_binary, parse_options
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import valid_request_id
+from catalign.api.paging import DEFAULT_PAGE, MAX_PAGE, page
 from catalign.api.schemas import RegisterResponse
 from catalign.api.service import RegistrationService
 from catalign.api.settings import ServiceSettings
-from catalign.errors import ConfigError
+from catalign.errors import ConfigError, InvalidInputError
+from catalign.library.sources import validate_category
 
 logger = logging.getLogger("catalign.api.grpc")
 
@@ -75,6 +77,20 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
         self, request: catalign_pb2.ListModelsRequest, context: grpc.aio.ServicerContext
     ) -> catalign_pb2.ListModelsReply:
         async def run(request_id: str) -> catalign_pb2.ListModelsReply:
+            category = request.category or None
+            if category is not None:
+                validate_category(category)
+            if not 0 <= request.page_size <= MAX_PAGE:
+                raise InvalidInputError(
+                    f"page_size {request.page_size} is outside 0 to {MAX_PAGE} (0: {DEFAULT_PAGE})"
+                )
+            kept = [e for e in await self.service.models() if category in (None, e.category)]
+            entries, next_token = page(
+                [e.model_id for e in kept],
+                kept,
+                request.page_size or DEFAULT_PAGE,
+                request.page_token or None,
+            )
             models = [
                 catalign_pb2.Model(
                     model_id=e.model_id,
@@ -89,9 +105,11 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                     bbox_max=e.bbox_max.tolist(),
                     size=e.size.tolist(),
                 )
-                for e in await self.service.models()
+                for e in entries
             ]
-            return catalign_pb2.ListModelsReply(count=len(models), models=models)
+            return catalign_pb2.ListModelsReply(
+                count=len(models), models=models, next_page_token=next_token or "", total=len(kept)
+            )
 
         return await self._call("ListModels", context, run)
 

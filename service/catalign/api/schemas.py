@@ -306,10 +306,14 @@ class ModelPublic(BaseModel):
 
 
 class ModelList(BaseModel):
-    count: int
+    count: int = Field(description="Models in this page.")
+    total: int = Field(description="Models of the library (of the category asked) in all pages.")
     models: list[ModelPublic]
     categories: dict[str, int] = Field(
         description="How many models of the whole library each category holds."
+    )
+    next_cursor: str | None = Field(
+        description="Pass it as cursor for the next page; null on the last page."
     )
 
 

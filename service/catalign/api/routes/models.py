@@ -2,11 +2,12 @@
 
 Adding uploads a shape file (mesh or point cloud) with an optional ``model_id`` (default: the
 file stem), ``units`` and ``category`` (default: chair); the server describes it, writes the
-library atomically and serves the new library from then on. Listing may keep one
-``category``, and counts every category's models. ``/models/{id}/points`` serves a model's
-surface points (metres, as stored), evenly thinned to at most ``max_points``, as raw float32
-for viewers and plots. Ids are checked against the library's id pattern, also after URL
-decoding (``..%2Fx`` is refused with 422, not routed somewhere else).
+library atomically and serves the new library from then on. Listing goes by pages
+(:mod:`catalign.api.paging`), may keep one ``category``, and counts every category's models.
+``/models/{id}/points`` serves a model's surface points (metres, as stored), evenly thinned
+to at most ``max_points``, as raw float32 for viewers and plots. Ids are checked against the
+library's id pattern, also after URL decoding (``..%2Fx`` is refused with 422, not routed
+somewhere else).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from catalign.api.deps import ServiceDep, require_writable
 from catalign.api.inputs import BINARY, MULTIPART, read_upload
+from catalign.api.paging import DEFAULT_PAGE, MAX_PAGE, page
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.geometry.io import SUPPORTED_SUFFIXES
@@ -101,15 +103,32 @@ async def list_models(
             json_schema_extra={"pattern": f"^{CATEGORY_PATTERN.pattern}$"},
         ),
     ] = None,
+    limit: Annotated[
+        int, Query(ge=1, le=MAX_PAGE, description="Models per page, at most 10,000.")
+    ] = DEFAULT_PAGE,
+    cursor: Annotated[
+        str | None,
+        Query(
+            max_length=400,
+            description="The next_cursor of the page before; leave it out for the first page.",
+        ),
+    ] = None,
 ) -> ModelList:
-    """Every model of the library being served (or of one ``category``), sorted by id, and how
-    many models each category holds."""
+    """The models of the library being served (or of one ``category``) sorted by id, one page
+    at a time, and how many models each category holds."""
     if category is not None:
         validate_category(category)
     everything = await service.models()
-    models = [ModelPublic.from_entry(e) for e in everything if category in (None, e.category)]
+    kept = [e for e in everything if category in (None, e.category)]
+    entries, next_cursor = page([e.model_id for e in kept], kept, limit, cursor)
     counts = Counter(entry.category for entry in everything)
-    return ModelList(count=len(models), models=models, categories=dict(sorted(counts.items())))
+    return ModelList(
+        count=len(entries),
+        total=len(kept),
+        models=[ModelPublic.from_entry(e) for e in entries],
+        categories=dict(sorted(counts.items())),
+        next_cursor=next_cursor,
+    )
 
 
 @router.get(
