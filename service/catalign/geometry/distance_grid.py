@@ -29,6 +29,8 @@ LEVELS = 255  # the uint8 value that means "at or beyond the truncation"
 # voxels reach past the verification distance (two) and the coarse ICP distance (three).
 CELL_VOXELS = 0.5
 TRUNCATION_VOXELS = 3.0
+# The most cells a grid holds (bytes, one per cell): a chair's grid holds about 0.6 million.
+MAX_CELLS = 32_000_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,13 +73,19 @@ class DistanceGrid:
         low = points.min(axis=0) if low is None else np.asarray(low, dtype=np.float64)
         high = points.max(axis=0) if high is None else np.asarray(high, dtype=np.float64)
         origin = low - truncation
-        shape = np.ceil((high + truncation - origin) / cell).astype(int) + 1
-        axes = [origin[a] + cell * np.arange(shape[a]) for a in range(3)]
-        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        gaps, _ = cKDTree(points).query(centres, distance_upper_bound=truncation)
-        step = truncation / LEVELS
-        levels = np.minimum(np.round(np.minimum(gaps, truncation) / step), LEVELS)
-        return cls(levels.astype(np.uint8).reshape(shape), origin, float(cell), float(step))
+        span = high + truncation - origin
+        # A model far larger than furniture gets coarser cells, not a grid beyond memory.
+        cell = max(cell, float(np.cbrt(np.prod(span + cell) / MAX_CELLS)))
+        shape = np.ceil(span / cell).astype(int) + 1
+        tree, step = cKDTree(points), truncation / LEVELS
+        values = np.empty(shape, dtype=np.uint8)
+        y, z = np.meshgrid(*(origin[a] + cell * np.arange(shape[a]) for a in (1, 2)), indexing="ij")
+        for i in range(shape[0]):  # a slab at a time keeps the query's memory small
+            centres = np.column_stack([np.full(y.size, origin[0] + cell * i), y.ravel(), z.ravel()])
+            gaps, _ = tree.query(centres, distance_upper_bound=truncation)
+            levels = np.minimum(np.round(np.minimum(gaps, truncation) / step), LEVELS)
+            values[i] = levels.reshape(shape[1:])
+        return cls(values, origin, float(cell), float(step))
 
     def distances(self, points: np.ndarray) -> np.ndarray:
         """Each of ``points`` (N,3)' distance to the point set (trilinear between centres),

@@ -6,6 +6,8 @@ where features are computed; an error the library detects prints one sentence, e
 
 from __future__ import annotations
 
+import os
+import time
 from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any
@@ -21,6 +23,10 @@ app = typer.Typer(
 )
 
 ModelDir = Annotated[Path | None, typer.Option(help="Extractor weights (default: model_store/).")]
+Workers = Annotated[
+    int | None,
+    typer.Option(min=1, help="Processes describing the models (default: one per core)."),
+]
 Units = Annotated[str, typer.Option(help="Units of the source coordinates: m, cm or mm.")]
 Category = Annotated[
     str | None,
@@ -46,10 +52,13 @@ def build(
     category: Category = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing library.")] = False,
     model_dir: ModelDir = None,
+    workers: Workers = None,
 ) -> None:
-    """Build a library from meshes and point clouds (model id = file stem)."""
+    """Build a library from meshes and point clouds (model id = file stem); run it again
+    after an interruption to resume where it stopped."""
     from catalign.library.index import build as build_index
 
+    started = time.perf_counter()
     with exit_on_error():
         manifest = build_index(
             sources,
@@ -58,8 +67,12 @@ def build(
             units=units,
             category=category,
             overwrite=overwrite,
+            workers=workers or os.cpu_count() or 1,
         )
-    typer.echo(f"built {out}: {len(manifest.entries)} models ({_counts(manifest)})")
+    typer.echo(
+        f"built {out}: {len(manifest.entries)} models ({_counts(manifest)}) "
+        f"{_rate(len(manifest.entries), started)}"
+    )
 
 
 @app.command()
@@ -69,15 +82,32 @@ def procedural(
     first_seed: Annotated[int, typer.Option(min=0, help="Seed of the first chair.")] = 0,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing library.")] = False,
     model_dir: ModelDir = None,
+    workers: Workers = None,
 ) -> None:
     """Build a library of procedural chairs (the shipped default library)."""
     from catalign.library.index import build_procedural
 
+    started = time.perf_counter()
     with exit_on_error():
         manifest = build_procedural(
-            out, _extractor(model_dir), count, first_seed, overwrite=overwrite
+            out,
+            _extractor(model_dir),
+            count,
+            first_seed,
+            overwrite=overwrite,
+            workers=workers or os.cpu_count() or 1,
         )
-    typer.echo(f"built {out}: {len(manifest.entries)} procedural chairs")
+    typer.echo(
+        f"built {out}: {len(manifest.entries)} procedural chairs "
+        f"{_rate(len(manifest.entries), started)}"
+    )
+
+
+def _rate(count: int, started: float) -> str:
+    """How long the command took and how many entries per second that makes (resumed ones
+    count as done)."""
+    elapsed = time.perf_counter() - started
+    return f"in {elapsed:.0f} s ({count / max(elapsed, 1e-9):.1f} per second)"
 
 
 @app.command()

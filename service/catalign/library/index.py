@@ -14,12 +14,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-from tqdm import tqdm
 
 from catalign.data.shapes import procedural_id
 from catalign.errors import (
@@ -27,12 +24,8 @@ from catalign.errors import (
     LibraryError,
     ModelNotFoundError,
 )
-from catalign.library.entry import (
-    SURFACE_POINTS,
-    LibraryEntry,
-    describe_file,
-    describe_procedural,
-)
+from catalign.library.builder import BuildJournal, Job, depends_on, describe_all
+from catalign.library.entry import SURFACE_POINTS, describe_file, describe_procedural
 from catalign.library.loaded import check_fingerprint
 from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_factor
 from catalign.library.store import (
@@ -43,7 +36,6 @@ from catalign.library.store import (
     has_manifest,
     read_manifest,
     utc_now,
-    write_entry,
     writer_lock,
 )
 
@@ -51,15 +43,6 @@ if TYPE_CHECKING:  # the extractor module imports torch; the index only needs it
     from catalign.features.extractor import FeatureExtractor
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class _Job:
-    """One entry to describe: its id, a label for messages, and the work itself."""
-
-    model_id: str
-    label: str
-    describe: Callable[[], LibraryEntry]
 
 
 def build(
@@ -73,18 +56,25 @@ def build(
     overwrite: bool = False,
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
+    workers: int = 1,
 ) -> Manifest:
     """Build a library in ``out_dir`` from shape files and folders (folders recursively).
 
     Every entry is of ``category``; without it, of the sub-folder it sits in under a named
     folder, else a chair (:func:`~catalign.library.sources.collect_sources`). Refuses a
     directory that already holds a library unless ``overwrite``; the old library stays usable
-    until the new manifest replaces it.
+    until the new manifest replaces it. ``workers`` processes describe the shapes; a build
+    killed half-way and run again resumes (:mod:`catalign.library.builder`).
     """
     unit_factor(units)
     found = collect_sources(sources, ids, category)
     jobs = [
-        _Job(s.model_id, str(s.path), partial(describe_file, s, extractor, units, num_points))
+        Job(
+            s.model_id,
+            str(s.path),
+            s.path,
+            partial(describe_file, s, units=units, num_points=num_points),
+        )
         for s in found
     ]
     return _write(
@@ -95,6 +85,8 @@ def build(
         overwrite=overwrite,
         progress=progress,
         category=category or DEFAULT_CATEGORY,
+        workers=workers,
+        depends=depends_on(extractor, units=units, category=category, num_points=num_points),
     )
 
 
@@ -107,21 +99,30 @@ def build_procedural(
     overwrite: bool = False,
     progress: bool = True,
     num_points: int = SURFACE_POINTS,
+    workers: int = 1,
 ) -> Manifest:
     """Build a library of ``count`` procedural chairs (ids ``proc-NNNN``, source
     ``procedural:<seed>``), as shipped in ``model_store/library``."""
     if count < 1:
         raise InvalidInputError(f"a procedural library needs at least one chair, got {count}")
     jobs = [
-        _Job(
+        Job(
             procedural_id(seed),
             f"procedural:{seed}",
-            partial(describe_procedural, seed, extractor, num_points),
+            None,
+            partial(describe_procedural, seed, num_points=num_points),
         )
         for seed in range(first_seed, first_seed + count)
     ]
     return _write(
-        Path(out_dir), extractor, jobs, fresh=True, overwrite=overwrite, progress=progress
+        Path(out_dir),
+        extractor,
+        jobs,
+        fresh=True,
+        overwrite=overwrite,
+        progress=progress,
+        workers=workers,
+        depends=depends_on(extractor, procedural=True, num_points=num_points),
     )
 
 
@@ -155,10 +156,18 @@ def add(
     if source_name is not None and len(found) != 1:
         raise InvalidInputError(f"source_name names one file, but {len(found)} were given")
     jobs = [
-        _Job(
+        Job(
             s.model_id,
             str(s.path),
-            partial(describe_file, s, extractor, units, num_points, source_name, max_points),
+            s.path,
+            partial(
+                describe_file,
+                s,
+                units=units,
+                num_points=num_points,
+                source_name=source_name,
+                max_points=max_points,
+            ),
         )
         for s in found
     ]
@@ -223,17 +232,21 @@ def list_models(library_dir: str | Path) -> list[str]:
 def _write(
     library_dir: Path,
     extractor: FeatureExtractor,
-    jobs: Sequence[_Job],
+    jobs: list[Job],
     *,
     fresh: bool,
     overwrite: bool = False,
     replace: bool = False,
     progress: bool,
     category: str = DEFAULT_CATEGORY,
+    workers: int = 1,
+    depends: dict[str, Any] | None = None,
 ) -> Manifest:
     """Describe ``jobs`` and commit them: a new library (``fresh``, whose entries added later
-    without a category are of ``category``) or onto the current one."""
+    without a category are of ``category``, journalled when ``depends`` names what its entries
+    depend on, so that a killed build resumes) or onto the current one."""
     written: set[str] = set()
+    journal: BuildJournal | None = None
     with writer_lock(library_dir):
         now = utc_now()
         if fresh:
@@ -244,6 +257,8 @@ def _write(
                 )
             records: dict[str, EntryRecord] = {}
             created, engine = now, {}
+            if depends is not None:
+                journal = BuildJournal(library_dir, depends)
         else:
             current = read_manifest(library_dir)
             check_fingerprint(current, extractor.fingerprint, library_dir)
@@ -252,15 +267,10 @@ def _write(
             created, engine = current.created, current.engine
             category = current.category
         try:
-            bar = tqdm(
-                jobs,
-                desc=f"describing models for {library_dir.name}",
-                unit="model",
-                disable=not progress,
+            described = describe_all(
+                library_dir, jobs, extractor, workers=workers, journal=journal, progress=progress
             )
-            for job in bar:
-                bar.set_postfix_str(job.model_id, refresh=False)
-                record = write_entry(library_dir, job.describe())
+            for job, record in described:
                 written.add(record.file)
                 records[job.model_id] = record
                 logger.debug("described %s from %s", job.model_id, job.label)
@@ -274,15 +284,18 @@ def _write(
                 category=category,
             )
             commit(library_dir, manifest)
+            if journal is not None:
+                journal.done()
         except Exception:
-            _clean_after_failure(library_dir, written)
+            if journal is None:  # a journalled build keeps its entries for the next run
+                _clean_after_failure(library_dir, written)
             raise
     logger.info("wrote %d model(s) to %s; %d in all", len(jobs), library_dir, len(records))
     return manifest
 
 
 def _check_new_ids(
-    manifest: Manifest, jobs: Sequence[_Job], replace: bool, library_dir: Path
+    manifest: Manifest, jobs: Sequence[Job], replace: bool, library_dir: Path
 ) -> None:
     if replace:
         return
