@@ -27,7 +27,7 @@ from _report import load_average, publish
 
 from catalign.library.builder import JOURNAL_NAME
 
-CLI = [sys.executable, "-m", "catalign", "library", "procedural"]
+CLI = [str(Path(sys.executable).with_name("catalign")), "library", "procedural"]
 
 
 def timed_build(out: Path, count: int, workers: int) -> float:

@@ -102,3 +102,25 @@ def test_shortlist_arguments():
     assert shortlist(lib, np.ones(3), None, k=None) == ["m0", "m1", "m2"]  # ties by id
     empty = synthetic_library(np.zeros((0, 3)), np.zeros((0, 3)))
     assert len(empty) == 0 and shortlist(empty, np.ones(3), None, k=3) == []
+
+
+def test_the_shortlist_stage_ranks_as_a_full_sort_does() -> None:
+    """The stage keeps the best k by a partial sort; a full stable sort of every score is the
+    reference, ties (repeated descriptors) in library order, with and without a category."""
+    from catalign.registration.stages.describe import QueryView
+    from catalign.registration.stages.shortlist import shortlist as stage_shortlist
+
+    rng = np.random.default_rng(3)
+    descriptors = rng.normal(size=(300, 64)).astype(np.float32)
+    descriptors[150:] = descriptors[:150]  # every score twice: ties everywhere
+    lib = synthetic_library(descriptors, np.full((300, 3), 0.6))
+    views = [QueryView(np.zeros((2, 3)), rng.normal(size=(5, 32))) for _ in range(3)]
+    query = np.stack([global_descriptor(v.features) for v in views])
+    scores = retrieval_scores(lib, query, np.zeros(3)).max(axis=0)
+    rows = rng.random(300) < 0.3
+    for k, mask in [(1, None), (10, None), (None, None), (7, rows), (None, rows), (500, rows)]:
+        order = np.argsort(-scores, kind="stable")
+        if mask is not None:
+            order = order[mask[order]]
+        expected = [lib.ids[i] for i in order[:k]]
+        assert stage_shortlist(lib, views, k, None, mask) == expected

@@ -37,8 +37,8 @@ class Library:
         ids = shortlist(library, global_descriptor(query.features), np.ptp(points, axis=0), k=5)
         model = library[ids[0]]  # LibraryEntry: points, keypoints, features, ...
 
-    ``ids`` are sorted; ``descriptors`` (E,K) float32, ``sizes`` (E,3) float64 and
-    ``categories`` (E,) follow them.
+    ``ids`` are sorted; ``descriptors`` (E,K) float32 (``unit_descriptors`` the same of unit
+    length), ``sizes`` (E,3) float64 and ``categories`` (E,) follow them.
     """
 
     def __init__(self, path: Path, manifest: Manifest, entries: Sequence[LibraryEntry]) -> None:
@@ -56,8 +56,11 @@ class Library:
         for row, entry in enumerate(ordered):
             self.descriptors[row] = entry.descriptor
             self.sizes[row] = entry.size
-        self.descriptors.flags.writeable = False
-        self.sizes.flags.writeable = False
+        # Unit-length descriptors, so that a query's cosine with every entry is one product.
+        norms = np.linalg.norm(self.descriptors, axis=1, keepdims=True)
+        self.unit_descriptors = self.descriptors / np.maximum(norms, 1e-12)
+        for array in (self.descriptors, self.sizes, self.unit_descriptors):
+            array.flags.writeable = False
 
     def __len__(self) -> int:
         return len(self.ids)

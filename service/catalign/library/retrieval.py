@@ -45,21 +45,22 @@ def retrieval_scores(
 ) -> np.ndarray:
     """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalties.
 
-    ``query_size`` is the query's bounding-box extents (``np.ptp(points, axis=0)``), in metres;
-    ``None`` skips the size check. ``query_height`` is its extent along the up direction, when
-    gravity is known: entries whose height (along +Y) differs lose :func:`height_penalty`.
+    ``query_descriptor`` is one descriptor (K,), or several (V,K) of the same query (seen at
+    several headings): then the scores are (V,E), one matrix product for all. ``query_size`` is
+    the query's bounding-box extents (``np.ptp(points, axis=0)``), in metres; ``None`` skips the
+    size check. ``query_height`` is its extent along the up direction, when gravity is known:
+    entries whose height (along +Y) differs lose :func:`height_penalty`.
     """
+    query = np.asarray(query_descriptor, dtype=np.float32)
     if len(library) == 0:
-        return np.zeros(0)
-    query = np.asarray(query_descriptor, dtype=np.float64).reshape(-1)
-    if query.shape[0] != library.descriptors.shape[1]:
+        return np.zeros((*query.shape[:-1], 0))
+    if query.shape[-1] != library.descriptors.shape[1]:
         raise InvalidInputError(
-            f"the query descriptor has {query.shape[0]} values but the library's have "
+            f"the query descriptor has {query.shape[-1]} values but the library's have "
             f"{library.descriptors.shape[1]}; were they made by the same extractor?"
         )
-    models = library.descriptors.astype(np.float64)
-    norms = np.linalg.norm(models, axis=1) * np.linalg.norm(query)
-    scores = models @ query / np.maximum(norms, _EPS)
+    query = query / np.maximum(np.linalg.norm(query, axis=-1, keepdims=True), _EPS)
+    scores = (query @ library.unit_descriptors.T).astype(np.float64)
     if query_size is not None:
         scores -= size_penalty(np.asarray(query_size, dtype=np.float64), library.sizes)
     if query_height is not None:

@@ -31,11 +31,12 @@ def shortlist(
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
-    scores = np.max(
-        [retrieval_scores(library, global_descriptor(v.features), size, height) for v in views],
-        axis=0,
-    )
-    order = np.argsort(-scores, kind="stable")
-    if rows is not None:
-        order = order[rows[order]]
-    return [library.ids[i] for i in order[:k]]
+    descriptors = np.stack([global_descriptor(v.features) for v in views])
+    scores = retrieval_scores(library, descriptors, size, height).max(axis=0)
+    candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
+    count = len(candidates) if k is None else min(k, len(candidates))
+    if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
+        kth = -np.partition(-scores[candidates], count - 1)[count - 1]
+        candidates = candidates[scores[candidates] >= kth]
+    best = candidates[np.lexsort((candidates, -scores[candidates]))]
+    return [library.ids[i] for i in best[:count]]
