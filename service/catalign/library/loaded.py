@@ -22,9 +22,12 @@ from catalign.errors import (
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
 from catalign.library.store import Manifest, read_entry, read_manifest_bytes, rebuild_hint
+from catalign.limits import max_memory_maps, raise_open_files_limit
 
 logger = logging.getLogger(__name__)
 
+# Files a serving process opens besides its library's entries.
+_SPARE_FILES = 512
 _LOAD_ATTEMPTS = 5  # a writer may replace the manifest while a reader reads the entries
 
 
@@ -119,12 +122,33 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
         manifest = Manifest.from_bytes(raw, library_dir)
         if extractor_fingerprint is not None:
             check_fingerprint(manifest, extractor_fingerprint, library_dir)
+        _check_process_limits(len(manifest.entries), library_dir)
         entries = _read_entries(library_dir, manifest, raw)
         if entries is not None:
             _check_descriptors(library_dir, entries)
             logger.info("loaded library %s: %d models", library_dir, len(entries))
             return Library(library_dir, manifest, entries)
     raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
+
+
+def _check_process_limits(count: int, library_dir: Path) -> None:
+    """Every entry keeps its file open and mapped while it is served, twice over while a
+    changed library replaces the old: raise the open-files limit to match, or say plainly why
+    the library cannot be served by this process (instead of failing half-way through it)."""
+    wanted = 2 * count + _SPARE_FILES
+    allowed = raise_open_files_limit(wanted)
+    maps = max_memory_maps()
+    if allowed < wanted or (maps is not None and maps < wanted):
+        limit = (
+            f"may open {allowed} files (ulimit -n)"
+            if allowed < wanted
+            else f"may hold {maps} memory maps (vm.max_map_count)"
+        )
+        raise LibraryError(
+            f"the library at {library_dir} holds {count} models, each kept open and mapped "
+            f"while served (twice while a changed library replaces it): this process {limit}, "
+            f"and {wanted} are needed; raise that limit or split the library by category"
+        )
 
 
 def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
