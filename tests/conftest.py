@@ -1,7 +1,10 @@
-"""Shared fixtures: the shared chairs and tables (skipped when absent), small synthetic shapes."""
+"""Shared fixtures: the shared chairs and tables (skipped when absent), the shipped weights (the
+server tests are skipped without them; ``CATALIGN_TEST_MODEL_DIR`` names other ones), small
+synthetic shapes."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -10,6 +13,7 @@ import pytest
 import trimesh
 
 from catalign.data.shapes import Shape, SharedChairs, default_chairs_root, default_tables_root
+from catalign.features.extractor import DEFAULT_MODEL_DIR
 from catalign.geometry.io import MeshData
 from catalign.geometry.sampling import sample_surface
 
@@ -30,6 +34,15 @@ def tables_root() -> Path:
     if not (root / "pointclouds").is_dir():
         pytest.skip(f"shared tables not found at {root} (set CATALIGN_TABLES_DIR)")
     return root
+
+
+@pytest.fixture(scope="session")
+def model_dir() -> Path:
+    """The extractor weights the server tests serve with; skipped when there are none."""
+    path = Path(os.environ.get("CATALIGN_TEST_MODEL_DIR", DEFAULT_MODEL_DIR))
+    if not (path / "model.safetensors").is_file() or not (path / "model_card.json").is_file():
+        pytest.skip("model_store/ has no trained weights yet")
+    return path
 
 
 @pytest.fixture(scope="session")

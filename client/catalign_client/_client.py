@@ -3,16 +3,15 @@
 A robot's control loop is usually synchronous, a fleet gateway usually asyncio, and both must
 behave identically: same validation, same encoding, same retries, same errors. So
 :class:`_BaseClient` builds every request as plain data (:class:`Request`), decides whether and
-how long to wait before a retry, and parses every answer; :class:`Client` and
-:class:`AsyncClient` only send requests and sleep, each in its own way. Retries cover what is
-transient (no connection, a timeout, 503 busy); a 4xx is the caller's to fix and never retried.
+how long to wait before a retry (:class:`~catalign_client._retry.RetryPolicy`), and parses every
+answer; :class:`Client` and :class:`AsyncClient` only send requests and sleep, each in its own
+way. Retries cover what is transient (no connection, a dropped one, a timeout, 502, 503, 504)
+for requests that are safe to send twice; a 4xx is the caller's to fix and never retried.
 """
 
 from __future__ import annotations
 
 import asyncio
-import logging
-import math
 import time
 from collections.abc import AsyncIterator, Iterator, Mapping
 from pathlib import Path
@@ -22,28 +21,23 @@ from urllib.parse import quote
 import httpx
 import numpy as np
 
-from ._exceptions import DecodingError, TransportError, error_from_response, retry_after_seconds
+from ._exceptions import DecodingError, TransportError, error_from_response
 from ._models import AlignResult, ModelInfo, parse_models, parse_removed_count
 from ._points import PointsLike, as_points, encode_binary, encode_json
 from ._requests import (
     Encoding,
+    IdempotencyKey,
     Request,
     UpLike,
+    idempotency_headers,
     model_points_params,
     query,
     registration_options,
     up_vector,
     upload,
 )
+from ._retry import DEFAULT_RETRY_BUDGET, RetryPolicy
 from ._version import __version__
-
-logger = logging.getLogger("catalign_client")
-
-MAX_RETRY_DELAY = 10.0
-"""Longest wait between two attempts in seconds, whatever ``Retry-After`` asks for."""
-
-# Errors raised before any byte of the request reached the server: safe to resend anything.
-_NOT_SENT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
 
 # Indirections so tests can make back-off instant.
 _sleep = time.sleep
@@ -58,17 +52,11 @@ class _BaseClient:
         base_url: str,
         *,
         api_key: str | None,
-        retries: int,
-        backoff: float,
+        retry: RetryPolicy,
     ) -> None:
-        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
-            raise ValueError(f"retries must be a non-negative integer, got {retries!r}")
-        if not math.isfinite(backoff) or backoff < 0:
-            raise ValueError(f"backoff must be a non-negative number of seconds, got {backoff!r}")
         self._base_url = base_url
         self._api_key = api_key
-        self._retries = retries
-        self._backoff = float(backoff)
+        self._retry = retry
 
     @property
     def base_url(self) -> str:
@@ -140,11 +128,29 @@ class _BaseClient:
         return Request("POST", "/register", params=query(options), files=upload(path))
 
     def _add_model_request(
-        self, path: str | Path, *, model_id: str | None, units: str | None, category: str | None
+        self,
+        path: str | Path,
+        model_id: str | None,
+        units: str | None,
+        category: str | None,
+        idempotency_key: IdempotencyKey,
     ) -> Request:
         fields = {"model_id": model_id, "units": units, "category": category}
         data = {name: value for name, value in fields.items() if value is not None}
-        return Request("POST", "/models", files=upload(path), data=data or None, idempotent=False)
+        headers = idempotency_headers(idempotency_key)
+        return Request(
+            "POST",
+            "/models",
+            files=upload(path),
+            data=data or None,
+            headers=headers,
+            idempotent=headers is not None,  # resent only when the server answers a key once
+        )
+
+    def _remove_model_request(self, model_id: str, idempotency_key: IdempotencyKey) -> Request:
+        headers = idempotency_headers(idempotency_key)
+        path = self._model_path(model_id)
+        return Request("DELETE", path, headers=headers, idempotent=headers is not None)
 
     @staticmethod
     def _models_request(category: str | None, page_size: int, cursor: str | None) -> Request:
@@ -167,41 +173,6 @@ class _BaseClient:
         if not isinstance(model_id, str) or not model_id:
             raise ValueError(f"model_id must be a non-empty string, got {model_id!r}")
         return "/models/" + quote(model_id, safe="")
-
-    # Retries ------------------------------------------------------------------------------------
-
-    def _retry_delay(
-        self,
-        request: Request,
-        attempt: int,
-        *,
-        response: httpx.Response | None = None,
-        error: httpx.TransportError | None = None,
-    ) -> float | None:
-        """Seconds to wait before resending after ``attempt`` (0-based), or ``None``: do not."""
-        if not request.retry or attempt >= self._retries:
-            return None
-        hint: float | None = None
-        if error is not None:
-            if not (request.idempotent or isinstance(error, _NOT_SENT)):
-                return None
-            reason = f"{type(error).__name__}: {error}"
-        elif response is not None and response.status_code == 503:
-            hint = retry_after_seconds(response)
-            reason = "503 service unavailable"
-        else:
-            return None
-        delay = min(hint if hint is not None else self._backoff * 2**attempt, MAX_RETRY_DELAY)
-        logger.info(
-            "%s %s: %s; retry %d of %d in %.2f s",
-            request.method,
-            request.path,
-            reason,
-            attempt + 1,
-            self._retries,
-            delay,
-        )
-        return delay
 
     def _transport_error(
         self, request: Request, error: httpx.TransportError, attempts: int
@@ -278,10 +249,17 @@ class Client(_BaseClient):
     Parameters:
         base_url: the server's root URL, e.g. ``"http://10.0.0.5:8000"``.
         api_key: sent as the ``X-API-Key`` header when given.
-        timeout: seconds per request (or an :class:`httpx.Timeout`); ``None`` waits forever.
-        retries: how many times to resend after a connection error, a timeout or a 503.
-        backoff: first wait in seconds; it doubles per retry, a ``Retry-After`` header replaces
-            it, and no wait exceeds ``MAX_RETRY_DELAY`` (10 s).
+        timeout: seconds per attempt (or an :class:`httpx.Timeout`); ``None`` waits forever.
+        retries: how many times to resend a request that is safe to send twice (a registration,
+            a read, a library change with an ``idempotency_key``) after a transport error
+            (refused, reset or dropped connection, timeout) or a 502, 503 or 504; a 4xx or a
+            500 is never resent, nor a library change without a key once it may have reached
+            the server.
+        backoff: first wait in seconds; it doubles per retry, times a random 0.5 to 1; a
+            ``Retry-After`` header replaces it (times 1 to 1.2); no wait exceeds
+            ``MAX_RETRY_DELAY`` (10 s).
+        retry_budget: no attempt starts later than this many seconds after the first one
+            started (30 s), so a call lasts at most ``retry_budget`` plus one attempt.
         transport: an :class:`httpx.BaseTransport`, e.g. :class:`httpx.MockTransport` in tests.
     """
 
@@ -293,9 +271,11 @@ class Client(_BaseClient):
         timeout: float | httpx.Timeout | None = 30.0,
         retries: int = 2,
         backoff: float = 0.2,
+        retry_budget: float = DEFAULT_RETRY_BUDGET,
         transport: httpx.BaseTransport | None = None,
     ) -> None:
-        super().__init__(base_url, api_key=api_key, retries=retries, backoff=backoff)
+        retry = RetryPolicy(retries, backoff, retry_budget)
+        super().__init__(base_url, api_key=api_key, retry=retry)
         self._http = httpx.Client(
             base_url=base_url, headers=self._headers(), timeout=timeout, transport=transport
         )
@@ -408,15 +388,26 @@ class Client(_BaseClient):
         model_id: str | None = None,
         units: str | None = None,
         category: str | None = None,
+        idempotency_key: IdempotencyKey = None,
     ) -> ModelInfo:
         """Upload a CAD file (mesh or point cloud) into the library; the id defaults to its stem,
-        the category to ``chair``."""
-        request = self._add_model_request(path, model_id=model_id, units=units, category=category)
+        the category to ``chair``.
+
+        ``idempotency_key``: a string (1 to 255 visible ASCII characters, e.g. a UUID) sent as
+        the ``Idempotency-Key`` header, or ``True`` for a fresh UUID. With one, the server adds
+        the model once and answers a repeat of the request with its first answer, so the call
+        is retried like a registration; without one it is never resent once it may have reached
+        the server. Reuse your own key to repeat the call yourself safely, e.g. after a
+        :class:`TransportError`; the same key with another file or other fields is refused
+        (:class:`InvalidInputError`, ``idempotency_key_reused``).
+        """
+        request = self._add_model_request(path, model_id, units, category, idempotency_key)
         return ModelInfo.from_json(self._call(request))
 
-    def remove_model(self, model_id: str) -> int:
-        """Remove a model from the library; returns how many models remain."""
-        request = Request("DELETE", self._model_path(model_id), idempotent=False)
+    def remove_model(self, model_id: str, *, idempotency_key: IdempotencyKey = None) -> int:
+        """Remove a model from the library; returns how many models remain.
+        ``idempotency_key``: as for :meth:`add_model` (a repeat answers the first count)."""
+        request = self._remove_model_request(model_id, idempotency_key)
         return parse_removed_count(self._call(request))
 
     def health(self) -> bool:
@@ -445,16 +436,18 @@ class Client(_BaseClient):
         return self._json(self._send(request))
 
     def _send(self, request: Request) -> httpx.Response:
-        attempt = 0
+        attempt, started = 0, time.monotonic()
         while True:
             try:
                 response = self._http.request(request.method, request.path, **request.arguments())
             except httpx.TransportError as exc:
-                delay = self._retry_delay(request, attempt, error=exc)
+                delay = self._retry.delay(request, attempt, time.monotonic() - started, error=exc)
                 if delay is None:
                     raise self._transport_error(request, exc, attempt + 1) from exc
             else:
-                delay = self._retry_delay(request, attempt, response=response)
+                delay = self._retry.delay(
+                    request, attempt, time.monotonic() - started, response=response
+                )
                 if delay is None:
                     return response
             _sleep(delay)
@@ -471,7 +464,7 @@ class AsyncClient(_BaseClient):
             pose = result.pose
 
     Parameters:
-        base_url, api_key, timeout, retries, backoff: as for :class:`Client`.
+        base_url, api_key, timeout, retries, backoff, retry_budget: as for :class:`Client`.
         transport: an :class:`httpx.AsyncBaseTransport`, e.g. :class:`httpx.MockTransport`.
     """
 
@@ -483,9 +476,11 @@ class AsyncClient(_BaseClient):
         timeout: float | httpx.Timeout | None = 30.0,
         retries: int = 2,
         backoff: float = 0.2,
+        retry_budget: float = DEFAULT_RETRY_BUDGET,
         transport: httpx.AsyncBaseTransport | None = None,
     ) -> None:
-        super().__init__(base_url, api_key=api_key, retries=retries, backoff=backoff)
+        retry = RetryPolicy(retries, backoff, retry_budget)
+        super().__init__(base_url, api_key=api_key, retry=retry)
         self._http = httpx.AsyncClient(
             base_url=base_url, headers=self._headers(), timeout=timeout, transport=transport
         )
@@ -573,14 +568,15 @@ class AsyncClient(_BaseClient):
         model_id: str | None = None,
         units: str | None = None,
         category: str | None = None,
+        idempotency_key: IdempotencyKey = None,
     ) -> ModelInfo:
         """See :meth:`Client.add_model`."""
-        request = self._add_model_request(path, model_id=model_id, units=units, category=category)
+        request = self._add_model_request(path, model_id, units, category, idempotency_key)
         return ModelInfo.from_json(await self._call(request))
 
-    async def remove_model(self, model_id: str) -> int:
+    async def remove_model(self, model_id: str, *, idempotency_key: IdempotencyKey = None) -> int:
         """See :meth:`Client.remove_model`."""
-        request = Request("DELETE", self._model_path(model_id), idempotent=False)
+        request = self._remove_model_request(model_id, idempotency_key)
         return parse_removed_count(await self._call(request))
 
     async def health(self) -> bool:
@@ -609,18 +605,20 @@ class AsyncClient(_BaseClient):
         return self._json(await self._send(request))
 
     async def _send(self, request: Request) -> httpx.Response:
-        attempt = 0
+        attempt, started = 0, time.monotonic()
         while True:
             try:
                 response = await self._http.request(
                     request.method, request.path, **request.arguments()
                 )
             except httpx.TransportError as exc:
-                delay = self._retry_delay(request, attempt, error=exc)
+                delay = self._retry.delay(request, attempt, time.monotonic() - started, error=exc)
                 if delay is None:
                     raise self._transport_error(request, exc, attempt + 1) from exc
             else:
-                delay = self._retry_delay(request, attempt, response=response)
+                delay = self._retry.delay(
+                    request, attempt, time.monotonic() - started, response=response
+                )
                 if delay is None:
                     return response
             await _async_sleep(delay)

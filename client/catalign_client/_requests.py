@@ -5,13 +5,15 @@ same thing, so every request is first built as a frozen :class:`Request` (files 
 memory) that either client can hand to httpx as often as needed. The options are checked here,
 before any I/O, and written the way the HTTP contract reads them: ``up=0,0,1``,
 ``estimate_scale=true`` and ``min_confidence=0.8`` as query parameters, or native JSON values in
-a JSON body.
+a JSON body. A library change's ``Idempotency-Key`` is checked (or made) here too.
 """
 
 from __future__ import annotations
 
 import math
 import numbers
+import re
+import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,14 +21,20 @@ from typing import Any, Literal
 
 Encoding = Literal["binary", "json"]
 UpLike = Sequence[float] | str
+IdempotencyKey = str | bool | None
+"""A key of your own, ``True`` for a fresh UUID, or ``None``/``False`` for none."""
+
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+_IDEMPOTENCY_KEY = re.compile(r"[\x21-\x7e]{1,255}")  # as the server accepts it
 
 
 @dataclass(frozen=True)
 class Request:
     """One HTTP request as plain data, so that it can be sent again on a retry.
 
-    ``idempotent`` says whether resending after a connection dropped mid-request is harmless
-    (registration is a pure function; adding a model is not). ``retry`` off means "answer now".
+    ``idempotent`` says whether sending it twice is harmless (registration is a pure function;
+    adding a model is not, unless it carries an ``Idempotency-Key`` the server answers once).
+    ``retry`` off means "answer now".
     """
 
     method: str
@@ -131,3 +139,17 @@ def upload(path: str | Path) -> dict[str, tuple[str, bytes, str]]:
     """The multipart ``file`` field, read into memory so that a retry can resend it."""
     path = Path(path)
     return {"file": (path.name, path.read_bytes(), "application/octet-stream")}
+
+
+def idempotency_headers(key: IdempotencyKey) -> dict[str, str] | None:
+    """The ``Idempotency-Key`` header for ``key`` (``True``: a fresh UUID), or None for none."""
+    if key is None or key is False:
+        return None
+    if key is True:
+        key = str(uuid.uuid4())
+    if not isinstance(key, str) or not _IDEMPOTENCY_KEY.fullmatch(key):
+        raise ValueError(
+            "idempotency_key must be True or 1 to 255 visible ASCII characters (no spaces), "
+            f"got {key!r}"
+        )
+    return {IDEMPOTENCY_HEADER: key}

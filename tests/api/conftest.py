@@ -31,7 +31,6 @@ from catalign.api.settings import ServiceSettings
 from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import render_view, upright_rotation
-from catalign.features.extractor import DEFAULT_MODEL_DIR
 from catalign.geometry.se3 import make_pose
 
 LIBRARY_SEEDS = 3  # proc-0000, proc-0001, proc-0002
@@ -60,14 +59,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
-
-
-@pytest.fixture(scope="session")
-def model_dir() -> Path:
-    path = Path(os.environ.get("CATALIGN_TEST_MODEL_DIR", DEFAULT_MODEL_DIR))
-    if not (path / "model.safetensors").is_file() or not (path / "model_card.json").is_file():
-        pytest.skip("model_store/ has no trained weights yet")
-    return path
 
 
 @pytest.fixture(scope="session")

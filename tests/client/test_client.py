@@ -450,12 +450,20 @@ def test_api_errors_pickle():
 # Retries -----------------------------------------------------------------------------------------
 
 
-def test_503_is_retried_with_exponential_backoff(make_api, align_answer, error_answer, sleeps):
+def between(waits: list[float], bounds: list[tuple[float, float]]) -> bool:
+    """Whether each wait lies within its (low, high) bounds, jitter included."""
+    pairs = zip(waits, bounds, strict=False)
+    return len(waits) == len(bounds) and all(lo <= w <= hi for w, (lo, hi) in pairs)
+
+
+def test_503_is_retried_with_jittered_exponential_backoff(
+    make_api, align_answer, error_answer, sleeps
+):
     busy = error_answer(503, "busy", "queue full")
     api = make_api(sequence(busy, busy, httpx.Response(200, json=align_answer())), backoff=0.2)
     assert api.align(CLOUD).model_id == "chair_0042"
     assert len(api.requests) == 3
-    assert sleeps == pytest.approx([0.2, 0.4])
+    assert between(sleeps, [(0.1, 0.2), (0.2, 0.4)]), sleeps
     assert api.requests[0].content == api.requests[2].content
 
 
@@ -464,7 +472,14 @@ def test_503_gives_up_after_the_retries(make_api, error_answer, sleeps):
     with pytest.raises(ServiceUnavailableError, match="queue full"):
         api.align(CLOUD)
     assert len(api.requests) == 4
-    assert sleeps == pytest.approx([0.1, 0.2, 0.4])
+    assert between(sleeps, [(0.05, 0.1), (0.1, 0.2), (0.2, 0.4)]), sleeps
+
+
+@pytest.mark.parametrize("status", [502, 504])
+def test_a_proxys_502_and_504_are_retried(make_api, align_answer, sleeps, status):
+    api = make_api(sequence(httpx.Response(status), httpx.Response(200, json=align_answer())))
+    assert api.align(CLOUD).model_id == "chair_0042"
+    assert len(api.requests) == 2 and len(sleeps) == 1
 
 
 def test_retry_after_is_honoured_and_capped(make_api, align_answer, sleeps):
@@ -474,7 +489,7 @@ def test_retry_after_is_honoured_and_capped(make_api, align_answer, sleeps):
 
     api = make_api(sequence(busy("3"), busy("3600"), httpx.Response(200, json=align_answer())))
     api.align(CLOUD)
-    assert sleeps == [3.0, 10.0]
+    assert between(sleeps, [(3.0, 3.6), (10.0, 10.0)]), sleeps
 
 
 def test_retry_after_as_http_date(make_api, align_answer, sleeps):
@@ -482,7 +497,7 @@ def test_retry_after_as_http_date(make_api, align_answer, sleeps):
     busy = httpx.Response(503, headers={"Retry-After": when}, text="busy")
     api = make_api(sequence(busy, httpx.Response(200, json=align_answer())))
     api.align(CLOUD)
-    assert 3.0 < sleeps[0] <= 5.0
+    assert 3.0 < sleeps[0] <= 6.0
 
 
 def test_service_unavailable_exposes_retry_after(make_api):
@@ -496,7 +511,7 @@ def test_connection_errors_are_retried(make_api, align_answer, sleeps):
     refused = httpx.ConnectError("connection refused")
     api = make_api(sequence(refused, refused, httpx.Response(200, json=align_answer())))
     assert api.align(CLOUD).model_id == "chair_0042"
-    assert sleeps == pytest.approx([0.2, 0.4])
+    assert between(sleeps, [(0.1, 0.2), (0.2, 0.4)]), sleeps
 
 
 def test_connection_errors_end_in_transport_error(make_api, sleeps):
@@ -525,6 +540,44 @@ def test_timeouts_are_retried_only_where_resending_is_harmless(
     )
     adding = make_api(refused_then_ok)
     assert adding.add_model(cad).model_id == "stool"  # nothing reached the server: resend
+    keyed = make_api(
+        sequence(httpx.ReadTimeout("slow"), httpx.Response(201, json=model_answer("stool")))
+    )
+    assert keyed.add_model(cad, idempotency_key="k-1").model_id == "stool"  # answered once
+    assert [r.headers["idempotency-key"] for r in keyed.requests] == ["k-1", "k-1"]
+
+
+@pytest.mark.parametrize("status", [502, 503, 504])
+def test_a_library_change_without_a_key_is_not_resent_after_an_answer(
+    make_api, model_answer, sleeps, tmp_path: Path, status
+):
+    cad = tmp_path / "stool.obj"
+    cad.write_text("v 0 0 0\n")
+    api = make_api(sequence(httpx.Response(status), httpx.Response(201, json=model_answer())))
+    with pytest.raises(ServerError):
+        api.add_model(cad)
+    removing = make_api(sequence(httpx.Response(status), httpx.Response(200, json={})))
+    with pytest.raises(ServerError):
+        removing.remove_model("stool")
+    assert len(api.requests) == len(removing.requests) == 1 and sleeps == []
+    assert "idempotency-key" not in api.requests[0].headers
+
+
+def test_a_generated_idempotency_key_is_a_uuid_kept_across_retries(make_api, sleeps):
+    api = make_api(
+        sequence(httpx.Response(503), httpx.Response(200, json={"removed": "a", "count": 1}))
+    )
+    assert api.remove_model("a", idempotency_key=True) == 1
+    first, second = (r.headers["idempotency-key"] for r in api.requests)
+    assert first == second and len(first) == 36 and first.count("-") == 4
+
+
+@pytest.mark.parametrize("key", ["", "with space", "é", "x" * 256, 7])
+def test_a_bad_idempotency_key_is_refused_before_sending(make_api, key):
+    api = make_api(lambda request: httpx.Response(200, json={"removed": "a", "count": 1}))
+    with pytest.raises(ValueError, match="idempotency_key"):
+        api.remove_model("a", idempotency_key=key)
+    assert api.requests == []
 
 
 @pytest.mark.parametrize("status", [400, 401, 404, 409, 413, 422, 500])
@@ -541,6 +594,8 @@ def test_invalid_retry_options():
         Client("http://x", retries=-1)
     with pytest.raises(ValueError, match="backoff"):
         AsyncClient("http://x", backoff=float("nan"))
+    with pytest.raises(ValueError, match="retry_budget"):
+        Client("http://x", retry_budget=-1.0)
 
 
 # Lifecycle ---------------------------------------------------------------------------------------

@@ -31,7 +31,9 @@ from typing import Self
 import httpx
 
 START_TIMEOUT_S = 180.0
+LIBRARY_SEEDS = 3  # the tests' library: proc-0000, proc-0001, proc-0002, as tests/api builds it
 HAPROXY_BUFFER = 1 << 20  # requests up to this size (about 87,000 binary points) can be resent
+RESEND = "conn-failure empty-response junk-response"  # what HAProxy resends to another reader
 
 
 def haproxy_binary() -> str | None:
@@ -139,13 +141,16 @@ def haproxy_config(
     stats_socket: Path,
     *,
     check_ms: int = 250,
+    resend: str = RESEND,
 ) -> str:
     """An HAProxy configuration for ``readers`` (and ``writer``) on ``127.0.0.1:port``.
 
     HAProxy hands each replica at most its workers plus one request at once (``maxconn``: the
     worker never idles between two requests); the rest wait in HAProxy's queue and go to
     whichever replica frees up first, and a replica that dies takes only its own few requests
-    down with it, which HAProxy then resends to another one.
+    down with it, which HAProxy then resends to another one (``resend``: the readers'
+    ``retry-on`` events; ``"conn-failure"`` alone leaves a request whose replica died under it
+    to the client, as a 502).
     """
 
     def server(replica: Replica, *extra: str) -> str:
@@ -194,7 +199,7 @@ def haproxy_config(
         "backend readers",
         "    balance leastconn",
         # A registration is a pure function: resend it when its replica died under it.
-        "    retry-on conn-failure empty-response junk-response",
+        f"    retry-on {resend}",
         *readiness,
         passive,
         *(server(r) for r in readers),
@@ -280,7 +285,7 @@ class Deployment:
     ``with Deployment(library, model_dir, work_dir, readers=2) as deployment:`` starts every
     replica at once, waits until each is ready and HAProxy sees it UP; ``deployment.url`` is
     HAProxy's. ``workers``, ``threads_per_worker``, ``queue`` and ``env`` (extra ``CATALIGN_*``
-    variables) apply to every replica.
+    variables) apply to every replica; ``resend`` is HAProxy's (see :func:`haproxy_config`).
     """
 
     def __init__(
@@ -296,6 +301,7 @@ class Deployment:
         queue: int = 8,
         env: dict[str, str] | None = None,
         check_ms: int = 250,
+        resend: str = RESEND,
     ) -> None:
         work_dir.mkdir(parents=True, exist_ok=True)
 
@@ -318,7 +324,12 @@ class Deployment:
         self.work_dir = work_dir
         self.port = free_port()
         self.config = haproxy_config(
-            self.port, self.readers, self.writer, work_dir / "haproxy.sock", check_ms=check_ms
+            self.port,
+            self.readers,
+            self.writer,
+            work_dir / "haproxy.sock",
+            check_ms=check_ms,
+            resend=resend,
         )
         self.haproxy: HAProxy | None = None
 

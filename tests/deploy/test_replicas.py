@@ -12,6 +12,7 @@ removed, no reader fails a request or answers from a library that no writer comm
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import threading
 import time
@@ -23,48 +24,31 @@ import pytest
 import trimesh
 
 import catalign_client as sdk
-from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
-from catalign.data.views import render_view, upright_rotation
-from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
-from catalign.geometry.se3 import make_pose
-from catalign.library.index import add, build_procedural
+from catalign.features.extractor import LearnedExtractor
+from catalign.library.index import add
 from catalign.library.store import read_manifest
-from tests.deploy._replicas import Deployment, haproxy_binary
+from tests.deploy._load import UP, Load, chair_view
+from tests.deploy._replicas import LIBRARY_SEEDS, Deployment, haproxy_binary
 
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(haproxy_binary() is None, reason="haproxy is not installed"),
 ]
 
-LIBRARY_SEEDS = 3  # proc-0000, proc-0001, proc-0002, as tests/api builds it
 FLOOD_CLIENTS = 16
 FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "30"))
-UP = (0.0, 0.0, 1.0)
 
 State = frozenset[tuple[str, str]]  # a library as (model id, source) pairs
 
 
 @pytest.fixture(scope="module")
-def model_dir() -> Path:
-    path = Path(os.environ.get("CATALIGN_TEST_MODEL_DIR", DEFAULT_MODEL_DIR))
-    if not (path / "model.safetensors").is_file() or not (path / "model_card.json").is_file():
-        pytest.skip("model_store/ has no trained weights yet")
-    return path
-
-
-@pytest.fixture(scope="module")
-def extractor(model_dir: Path) -> LearnedExtractor:
-    return LearnedExtractor(model_dir, threads=1)
-
-
-@pytest.fixture(scope="module")
 def deployment(
-    model_dir: Path, extractor: LearnedExtractor, tmp_path_factory: pytest.TempPathFactory
+    model_dir: Path, procedural_library: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[Deployment]:
     """A writer and two single-worker readers (1 thread each) on a 3-chair library."""
     root = tmp_path_factory.mktemp("replicas")
-    build_procedural(root / "library", extractor, LIBRARY_SEEDS, progress=False)
+    shutil.copytree(procedural_library, root / "library")
     with Deployment(root / "library", model_dir, root / "run", readers=2) as running:
         yield running
 
@@ -75,15 +59,6 @@ def replicas(deployment: Deployment) -> Deployment:
     return deployment
 
 
-def chair_view(seed: int, yaw: float = 0.7, step: int = 2) -> np.ndarray:
-    """Chair ``seed`` on the floor (+Z up) seen from 2 m, as tests/api/conftest.py renders it."""
-    shape = procedural_shape(seed)
-    pose = make_pose(upright_rotation(yaw), np.array([0.3, -0.2, -shape.points[:, 1].min()]))
-    camera = camera_at(np.array([0.3, -0.2, 0.4]), 2.0, 25.0, 30.0)
-    points = render_view(shape, pose, camera, np.random.default_rng(seed))
-    return np.ascontiguousarray(points[::step], dtype=np.float32)
-
-
 def chair_file(folder: Path, seed: int, name: str) -> Path:
     """Procedural chair ``seed``'s mesh as a PLY file named ``name``."""
     mesh = procedural_shape(seed).mesh
@@ -91,48 +66,6 @@ def chair_file(folder: Path, seed: int, name: str) -> Path:
     path = folder / name
     path.write_bytes(trimesh.exchange.ply.export_ply(trimesh.Trimesh(mesh.vertices, mesh.faces)))
     return path
-
-
-class Flood:
-    """``clients`` SDK clients registering one view through HAProxy back to back, from start
-    until :meth:`stop` (at most ``limit_s``); every exception the SDK raises is a failure."""
-
-    def __init__(self, url: str, points: np.ndarray, clients: int, limit_s: float) -> None:
-        self.url, self.points = url, points
-        self.ok = 0
-        self.failures: list[str] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._end = time.monotonic() + limit_s
-        self.started = time.monotonic()
-        self._threads = [threading.Thread(target=self._client) for _ in range(clients)]
-        for thread in self._threads:
-            thread.start()
-
-    def _client(self) -> None:
-        with sdk.Client(self.url, timeout=60, retries=2) as client:
-            while not self._stop.is_set() and time.monotonic() < self._end:
-                try:
-                    client.align(self.points, up=UP, seed=0)
-                except sdk.CatalignError as error:
-                    with self._lock:
-                        self.failures.append(repr(error))
-                else:
-                    with self._lock:
-                        self.ok += 1
-
-    def stop(self, at_least_s: float = 0.0) -> None:
-        """Stop once the flood has run ``at_least_s`` seconds in all; wait for the clients."""
-        time.sleep(max(0.0, min(self.started + at_least_s, self._end) - time.monotonic()))
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=90)
-
-    def __enter__(self) -> Flood:
-        return self
-
-    def __exit__(self, *exc_info: object) -> None:
-        self.stop()
 
 
 def served(replicas: Deployment, server: str) -> int:
@@ -168,7 +101,7 @@ def test_a_killed_reader_fails_no_request_and_haproxy_takes_it_out_and_back(
 ) -> None:
     victim = replicas.readers[0]
     server = f"readers/{victim.name}"
-    with Flood(replicas.url, chair_view(1), FLOOD_CLIENTS, FLOOD_S + 60) as flood:
+    with Load(replicas.url, chair_view(1), FLOOD_CLIENTS, FLOOD_S + 60) as flood:
         time.sleep(3.0)
         assert served(replicas, server) > 0
         victim.stop(signal.SIGKILL)
@@ -185,7 +118,7 @@ def test_a_killed_reader_fails_no_request_and_haproxy_takes_it_out_and_back(
 
 
 def test_a_rolling_restart_of_the_readers_fails_no_request(replicas: Deployment) -> None:
-    with Flood(replicas.url, chair_view(2), FLOOD_CLIENTS, FLOOD_S + 90) as flood:
+    with Load(replicas.url, chair_view(2), FLOOD_CLIENTS, FLOOD_S + 90) as flood:
         time.sleep(2.0)
         for reader in replicas.readers:  # SIGTERM, wait for the exit, start, HAProxy sees UP
             replicas.restart(reader, signal.SIGTERM)

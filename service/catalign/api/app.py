@@ -19,6 +19,7 @@ from pydantic import BaseModel
 import catalign
 from catalign.api.deps import require_api_key
 from catalign.api.errors import install_error_handlers
+from catalign.api.idempotency import FOLDER, IdempotencyStore
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import RequestContextMiddleware
 from catalign.api.routes import health, models, register, system, viewer
@@ -71,6 +72,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     app.state.service = service
+    app.state.idempotency = IdempotencyStore(settings.library / FOLDER)  # beside the library
     app.state.grpc_port = None
     install_error_handlers(app)
     app.add_middleware(

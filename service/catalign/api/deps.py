@@ -1,10 +1,11 @@
 """Request dependencies as ``Annotated`` aliases, so that handler signatures read as plain types.
 
 ``ServiceDep`` and ``SettingsDep`` hand a route the app's service and settings (tests may
-override :func:`get_service`); ``require_api_key`` and ``require_writable`` guard routers and
-routes. The API key travels in the ``X-API-Key`` header, or as ``Authorization: Bearer <key>``
-for clients that cannot set custom headers (a Prometheus ServiceMonitor); :func:`check_api_key`,
-shared with gRPC, compares it in constant time.
+override :func:`get_service`), ``IdempotencyDep`` its key records and ``IdempotencyKeyDep`` a
+library change's checked ``Idempotency-Key``; ``require_api_key`` and ``require_writable`` guard
+routers and routes. The API key travels in the ``X-API-Key`` header, or as
+``Authorization: Bearer <key>`` for clients that cannot set custom headers (a Prometheus
+ServiceMonitor); :func:`check_api_key`, shared with gRPC, compares it in constant time.
 """
 
 from __future__ import annotations
@@ -12,12 +13,13 @@ from __future__ import annotations
 import hmac
 from typing import Annotated
 
-from fastapi import Depends, Request, Security
+from fastapi import Depends, Header, Request, Security
 from fastapi.security import APIKeyHeader, HTTPBearer
 from pydantic import SecretStr
 from starlette.requests import HTTPConnection
 
 from catalign.api.errors import ReadOnlyError, UnauthorizedError
+from catalign.api.idempotency import KEY_HEADER, KEY_PATTERN, IdempotencyStore, checked_key
 from catalign.api.service import RegistrationService
 from catalign.api.settings import ServiceSettings
 
@@ -53,8 +55,30 @@ def get_settings(request: Request) -> ServiceSettings:
     return request.app.state.settings
 
 
+def get_idempotency(request: Request) -> IdempotencyStore:
+    return request.app.state.idempotency
+
+
+def idempotency_key(
+    key: Annotated[
+        str | None,
+        Header(
+            alias=KEY_HEADER,
+            description="Makes the change safe to send again: a repeat with the same key and "
+            "the same request answers the first answer (Idempotent-Replayed: true) and changes "
+            "nothing; the same key with another request is refused (422 "
+            "idempotency_key_reused). Keys are kept 24 h.",
+            json_schema_extra={"pattern": f"^{KEY_PATTERN.pattern}$", "maxLength": 255},
+        ),
+    ] = None,
+) -> str | None:
+    return None if key is None else checked_key(key)
+
+
 ServiceDep = Annotated[RegistrationService, Depends(get_service)]
 SettingsDep = Annotated[ServiceSettings, Depends(get_settings)]
+IdempotencyDep = Annotated[IdempotencyStore, Depends(get_idempotency)]
+IdempotencyKeyDep = Annotated[str | None, Depends(idempotency_key)]
 
 
 def check_api_key(

@@ -3,7 +3,8 @@
 The service adds a few errors of its own to catalign's hierarchy (:mod:`catalign.errors`)::
 
     CatalignError
-    ├── InvalidInputError ─── ModelExistsError       409 model_exists
+    ├── InvalidInputError ─┬─ ModelExistsError       409 model_exists
+    │                      └─ IdempotencyKeyReusedError  422 idempotency_key_reused
     ├── LibraryError ──────── EmptyLibraryError      409 library_empty
     └── ServiceError
         ├── PayloadTooLargeError                     413 payload_too_large
@@ -81,6 +82,10 @@ class ModelExistsError(InvalidInputError):
     """A model with this id is already in the library."""
 
 
+class IdempotencyKeyReusedError(InvalidInputError):
+    """An ``Idempotency-Key`` sent again with another request than the first time."""
+
+
 class EmptyLibraryError(LibraryError):
     """The library has no model to register against."""
 
@@ -100,6 +105,7 @@ INTERNAL = ErrorKind(500, "internal", "INTERNAL")
 ERROR_TABLE: tuple[tuple[type[Exception], ErrorKind], ...] = (
     (ModelExistsError, ErrorKind(409, "model_exists", "ALREADY_EXISTS")),
     (DegenerateInputError, ErrorKind(422, "degenerate_input", "INVALID_ARGUMENT")),
+    (IdempotencyKeyReusedError, ErrorKind(422, "idempotency_key_reused", "INVALID_ARGUMENT")),
     (InvalidInputError, ErrorKind(422, "invalid_input", "INVALID_ARGUMENT")),
     (ShapeReadError, ErrorKind(422, "invalid_file", "INVALID_ARGUMENT")),
     (ModelNotFoundError, ErrorKind(404, "model_not_found", "NOT_FOUND")),

@@ -7,7 +7,9 @@ library atomically and serves the new library from then on. Listing goes by page
 ``/models/{id}/points`` serves a model's surface points (metres, as stored), evenly thinned
 to at most ``max_points``, as raw float32 for viewers and plots. Ids are checked against the
 library's id pattern, also after URL decoding (``..%2Fx`` is refused with 422, not routed
-somewhere else).
+somewhere else). Adding and removing take an ``Idempotency-Key``
+(:mod:`catalign.api.idempotency`): a repeat with the key answers the first answer and changes
+nothing, so a client may send the change again when its answer was lost.
 """
 
 from __future__ import annotations
@@ -18,13 +20,18 @@ from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
 
-from catalign.api.deps import ServiceDep, require_writable
+from catalign.api.deps import IdempotencyDep, IdempotencyKeyDep, ServiceDep, require_writable
+from catalign.api.idempotency import Answer, Change, IdempotencyStore
 from catalign.api.inputs import BINARY, MULTIPART, read_upload
 from catalign.api.paging import DEFAULT_PAGE, MAX_PAGE, page
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
+from catalign.errors import ModelNotFoundError
 from catalign.geometry.io import SUPPORTED_SUFFIXES
+from catalign.library.entry import LibraryEntry, file_sha256
 from catalign.library.sources import (
     CATEGORY_PATTERN,
     MODEL_ID_PATTERN,
@@ -176,15 +183,33 @@ async def get_model(model_id: ModelId, service: ServiceDep) -> ModelPublic:
     openapi_extra={"requestBody": _UPLOAD_BODY},
     responses=error_responses(401, 403, 409, 413, 415, 422, 503),
 )
-async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
+async def add_model(
+    request: Request, service: ServiceDep, keys: IdempotencyDep, key: IdempotencyKeyDep
+) -> Response:
     """Describe an uploaded shape and add it to the library (persisted atomically)."""
     service.ensure_capacity()
     async with read_upload(request, SUPPORTED_SUFFIXES, service.spool) as upload:
         model_id = upload.fields.get("model_id") or FilePath(upload.filename).stem
         units = upload.fields.get("units") or "m"
         category = upload.fields.get("category") or None  # None: the library's default
-        entry = await service.add_model(upload, model_id, units, category)
-    return ModelPublic.from_entry(entry)
+        sha256 = "" if key is None else await run_in_threadpool(file_sha256, upload.path)
+
+        def added(entry: LibraryEntry) -> Answer:
+            return Answer(201, ModelPublic.from_entry(entry).model_dump(mode="json"))
+
+        async def add() -> Answer:
+            return added(await service.add_model(upload, model_id, units, category))
+
+        async def committed() -> Answer | None:
+            try:
+                entry = await service.model(model_id)
+            except ModelNotFoundError:
+                return None
+            return added(entry) if entry.source_sha256 == sha256 else None
+
+        fields = {"model_id": model_id, "units": units, "category": category or ""}
+        asked = {"method": "POST", "path": "/models", "file": upload.filename, **fields}
+        return await once(keys, key, Change(asked | {"sha256": sha256}, add, committed))
 
 
 @router.delete(
@@ -193,7 +218,29 @@ async def add_model(request: Request, service: ServiceDep) -> ModelPublic:
     dependencies=[Depends(require_writable)],
     responses=error_responses(401, 403, 404, 422, 503),
 )
-async def remove_model(model_id: ModelId, service: ServiceDep) -> ModelRemoved:
+async def remove_model(
+    model_id: ModelId, service: ServiceDep, keys: IdempotencyDep, key: IdempotencyKeyDep
+) -> Response:
     """Remove a model from the library (persisted atomically)."""
-    count = await service.remove_model(model_id)
-    return ModelRemoved(removed=model_id, count=count)
+
+    def removed(count: int) -> Answer:
+        return Answer(200, ModelRemoved(removed=model_id, count=count).model_dump(mode="json"))
+
+    async def remove() -> Answer:
+        return removed(await service.remove_model(model_id))
+
+    async def committed() -> Answer | None:
+        models = await service.models()
+        present = any(entry.model_id == model_id for entry in models)
+        return None if present else removed(len(models))
+
+    asked = {"method": "DELETE", "path": f"/models/{model_id}"}
+    return await once(keys, key, Change(asked, remove, committed))
+
+
+async def once(keys: IdempotencyStore, key: str | None, change: Change) -> Response:
+    """``change`` made now (no key), or at most once for ``key`` (see idempotency.py)."""
+    if key is None:
+        answer = await change.run()
+        return JSONResponse(answer.body, answer.status)
+    return await keys.respond(key, change)
