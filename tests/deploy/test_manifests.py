@@ -6,14 +6,18 @@ strict mode (unknown fields refused) against the Kubernetes API schemas that the
 ``kubernetes-validate`` wheel bundles, for 1.31 (the oldest release these manifests aim at) and
 the newest bundled. The ServiceMonitor is a CRD that kubernetes-validate knows nothing of: the
 test checks that it says so, then validates it against ``SERVICE_MONITOR_SCHEMA`` below, the
-subset of the Prometheus Operator's schema that these manifests use (unknown fields refused).
+subset of the Prometheus Operator's schema that these manifests use (unknown fields refused);
+the Gateway API's HTTPRoute likewise, against ``HTTP_ROUTE_SCHEMA``.
 Then the contract: the probes hit routes the app serves, the ports are the CLI's defaults, each
 container's arguments and ``CATALIGN_*`` variables resolve through the real CLI and settings
-classes, the readers run ``--read-only``, one writer, the HPA and the PDB act on the readers,
-the queue metric is one the service exports, the API key comes from a Secret file (and the
-ServiceMonitor sends the same Secret key as ``Authorization: Bearer``, which opens /metrics), and
-every container runs non-root on a read-only root filesystem with emptyDirs where the service
-writes.
+classes, the readers run ``--read-only``, one writer per library, the HPA and the PDB act on the
+readers, the queue metric is one the service exports, the API key comes from a Secret file (and
+the ServiceMonitor sends the same Secret key as ``Authorization: Bearer``, which opens /metrics),
+and every container runs non-root on a read-only root filesystem with emptyDirs where the service
+writes. An overlay sharded by category holds all of that once per shard (named with the shard's
+suffix), and its HTTPRoute sends each category, as the SDK sends it, to the shard whose library
+is named for it, and everything else to the default shard; each shard's writer seeds only the
+shard's own categories.
 """
 
 from __future__ import annotations
@@ -50,7 +54,12 @@ OVERLAYS = sorted(p.parent.name for p in (DEPLOY / "overlays").glob("*/kustomiza
 VERSIONS = ("1.31.0", latest_version())
 # Overlays for a one-node cluster, where a ReadWriteOnce library is shared by every pod.
 SINGLE_NODE = {"dev"}
-API, WRITER = "catalign-api", "catalign-writer"
+API, WRITER, LIBRARY = "catalign-api", "catalign-writer", "catalign-library"
+# Overlays sharded by category: each shard's resources are the unsharded ones' with the suffix
+# -<shard> and the label catalign/shard=<shard>; the shard `default` serves every category
+# without a shard of its own, and requests that name none.
+SHARDED = {"sharded"}
+SHARD_LABEL, DEFAULT_SHARD = "catalign/shard", "default"
 
 # The Prometheus Operator's ServiceMonitor (monitoring.coreos.com/v1), cut to the fields used
 # here; field names and types as in its CRD. Anything else is refused, like strict mode does.
@@ -73,51 +82,179 @@ _SECRET_KEY_SELECTOR = {
         "optional": {"type": "boolean"},
     },
 }
-SERVICE_MONITOR_SCHEMA = {
-    "type": "object",
-    "additionalProperties": False,
-    "required": ["apiVersion", "kind", "metadata", "spec"],
-    "properties": {
-        "apiVersion": {"const": "monitoring.coreos.com/v1"},
-        "kind": {"const": "ServiceMonitor"},
-        "metadata": {
-            "type": "object",
-            "additionalProperties": False,
-            "required": ["name"],
-            "properties": {
-                "name": {"type": "string", "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"},
-                "namespace": {"type": "string"},
-                "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+
+
+def custom_resource_schema(api_version: str, kind: str, spec: dict[str, Any]) -> dict[str, Any]:
+    """A custom resource of ``kind``: name, namespace and labels, and ``spec``, nothing else."""
+    return {
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["apiVersion", "kind", "metadata", "spec"],
+        "properties": {
+            "apiVersion": {"const": api_version},
+            "kind": {"const": kind},
+            "metadata": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["name"],
+                "properties": {
+                    "name": {"type": "string", "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"},
+                    "namespace": {"type": "string"},
+                    "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+                },
+            },
+            "spec": spec,
+        },
+    }
+
+
+SERVICE_MONITOR_SCHEMA = custom_resource_schema(
+    "monitoring.coreos.com/v1",
+    "ServiceMonitor",
+    {
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["selector", "endpoints"],
+        "properties": {
+            "selector": _LABEL_SELECTOR,
+            "namespaceSelector": {"type": "object"},
+            "jobLabel": {"type": "string"},
+            "endpoints": {
+                "type": "array",
+                "minItems": 1,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "required": ["port"],
+                    "properties": {
+                        "port": {"type": "string"},
+                        "path": {"type": "string", "pattern": "^/"},
+                        "scheme": {"enum": ["http", "https"]},
+                        "interval": _DURATION,
+                        "scrapeTimeout": _DURATION,
+                        "honorLabels": {"type": "boolean"},
+                        "authorization": {
+                            "type": "object",
+                            "additionalProperties": False,
+                            "properties": {
+                                "type": {"type": "string"},
+                                "credentials": _SECRET_KEY_SELECTOR,
+                            },
+                        },
+                    },
+                },
             },
         },
-        "spec": {
+    },
+)
+
+# The Gateway API's HTTPRoute (gateway.networking.k8s.io/v1, standard channel), cut to the fields
+# used here; names, types, bounds and patterns as in its CRD (a path's leading "/", a CEL rule
+# there, is a pattern here). Anything else is refused.
+_DNS_SUBDOMAIN = {"type": "string", "minLength": 1, "maxLength": 253}
+_PORT_NUMBER = {"type": "integer", "minimum": 1, "maximum": 65535}
+_GROUP = {
+    "type": "string",
+    "maxLength": 253,
+    "pattern": r"^$|^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$",
+}
+_KIND = {
+    "type": "string",
+    "minLength": 1,
+    "maxLength": 63,
+    "pattern": r"^[a-zA-Z]([-a-zA-Z0-9]*[a-zA-Z0-9])?$",
+}
+_NAMESPACE = {
+    "type": "string",
+    "minLength": 1,
+    "maxLength": 63,
+    "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$",
+}
+_HTTP_ROUTE_MATCH = {
+    "type": "object",
+    "additionalProperties": False,
+    "properties": {
+        "path": {
             "type": "object",
             "additionalProperties": False,
-            "required": ["selector", "endpoints"],
             "properties": {
-                "selector": _LABEL_SELECTOR,
-                "namespaceSelector": {"type": "object"},
-                "jobLabel": {"type": "string"},
-                "endpoints": {
-                    "type": "array",
-                    "minItems": 1,
-                    "items": {
-                        "type": "object",
-                        "additionalProperties": False,
-                        "required": ["port"],
-                        "properties": {
-                            "port": {"type": "string"},
-                            "path": {"type": "string", "pattern": "^/"},
-                            "scheme": {"enum": ["http", "https"]},
-                            "interval": _DURATION,
-                            "scrapeTimeout": _DURATION,
-                            "honorLabels": {"type": "boolean"},
-                            "authorization": {
+                "type": {"enum": ["Exact", "PathPrefix", "RegularExpression"]},
+                "value": {"type": "string", "maxLength": 1024, "pattern": "^/"},
+            },
+        },
+        "queryParams": {
+            "type": "array",
+            "maxItems": 16,
+            "items": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["name", "value"],
+                "properties": {
+                    "type": {"enum": ["Exact", "RegularExpression"]},
+                    "name": {
+                        "type": "string",
+                        "minLength": 1,
+                        "maxLength": 256,
+                        "pattern": r"^[A-Za-z0-9!#$%&'*+\-.^_`|~]+$",
+                    },
+                    "value": {"type": "string", "minLength": 1, "maxLength": 1024},
+                },
+            },
+        },
+    },
+}
+# What a parentRef and a backendRef have in common: the object referred to, and its port.
+_REFERENCE = {
+    "group": _GROUP,
+    "kind": _KIND,
+    "namespace": _NAMESPACE,
+    "name": _DNS_SUBDOMAIN,
+    "port": _PORT_NUMBER,
+}
+HTTP_ROUTE_SCHEMA = custom_resource_schema(
+    "gateway.networking.k8s.io/v1",
+    "HTTPRoute",
+    {
+        "type": "object",
+        "additionalProperties": False,
+        "properties": {
+            "parentRefs": {
+                "type": "array",
+                "maxItems": 32,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "required": ["name"],
+                    "properties": {**_REFERENCE, "sectionName": _DNS_SUBDOMAIN},
+                },
+            },
+            "hostnames": {
+                "type": "array",
+                "maxItems": 16,
+                "items": {
+                    **_DNS_SUBDOMAIN,
+                    "pattern": r"^(\*\.)?[a-z0-9]([-a-z0-9]*[a-z0-9])?"
+                    r"(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$",
+                },
+            },
+            "rules": {
+                "type": "array",
+                "maxItems": 16,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "properties": {
+                        "matches": {"type": "array", "maxItems": 64, "items": _HTTP_ROUTE_MATCH},
+                        "backendRefs": {
+                            "type": "array",
+                            "maxItems": 16,
+                            "items": {
                                 "type": "object",
                                 "additionalProperties": False,
+                                "required": ["name"],
                                 "properties": {
-                                    "type": {"type": "string"},
-                                    "credentials": _SECRET_KEY_SELECTOR,
+                                    **_REFERENCE,
+                                    "weight": {"type": "integer", "minimum": 0, "maximum": 1000000},
                                 },
                             },
                         },
@@ -126,6 +263,11 @@ SERVICE_MONITOR_SCHEMA = {
             },
         },
     },
+)
+# Custom resources that kubernetes-validate has no schema for, and the subset schemas above.
+CRD_SCHEMAS = {
+    ("monitoring.coreos.com/v1", "ServiceMonitor"): SERVICE_MONITOR_SCHEMA,
+    ("gateway.networking.k8s.io/v1", "HTTPRoute"): HTTP_ROUTE_SCHEMA,
 }
 
 
@@ -250,8 +392,33 @@ def served_deployments(overlay: str) -> dict[str, dict[str, Any]]:
     return {d["metadata"]["name"]: d for d in of_kind(overlay, "Deployment")}
 
 
+def named(name: str, shard: str | None) -> str:
+    """The name ``name`` takes in ``shard`` (None: in an overlay without shards)."""
+    return name if shard is None else f"{name}-{shard}"
+
+
+def shard_of(resource: dict[str, Any]) -> str | None:
+    return resource["metadata"].get("labels", {}).get(SHARD_LABEL)
+
+
+@functools.cache
+def shard_names(overlay: str) -> tuple[str | None, ...]:
+    """The overlay's shards, as its Deployments are labelled: ``(None,)`` where it has none."""
+    names = {shard_of(d) for d in served_deployments(overlay).values()}
+    if overlay not in SHARDED:
+        assert names == {None}, f"{overlay}: shard labels outside a sharded overlay"
+        return (None,)
+    assert None not in names and DEFAULT_SHARD in names and len(names) > 1, names
+    return tuple(sorted(names))
+
+
+def library_claim(deployment: dict[str, Any]) -> str:
+    volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
+    return volumes["library"]["persistentVolumeClaim"]["claimName"]
+
+
 def test_the_overlays_are_found() -> None:
-    assert {"dev", "production", "production-queue-depth"} <= set(OVERLAYS)
+    assert {"dev", "production", "production-queue-depth", "sharded"} <= set(OVERLAYS)
 
 
 @pytest.mark.parametrize("version", VERSIONS)
@@ -262,10 +429,11 @@ def test_every_resource_validates_strictly(overlay: str, version: str) -> None:
     assert "PersistentVolumeClaim" in kinds
     for resource in render(overlay):
         where = f"{overlay}: {resource['kind']} {resource['metadata']['name']}"
-        if resource["apiVersion"].startswith("monitoring.coreos.com/"):
+        custom = CRD_SCHEMAS.get((resource["apiVersion"], resource["kind"]))
+        if custom is not None:
             with pytest.raises(SchemaNotFoundError):  # a CRD: no schema bundled
                 kubernetes_validate.validate(resource, version, strict=True)
-            jsonschema.validate(resource, SERVICE_MONITOR_SCHEMA)
+            jsonschema.validate(resource, custom)
             continue
         try:
             kubernetes_validate.validate(resource, version, strict=True)
@@ -288,6 +456,19 @@ def test_strict_validation_refuses_a_misspelt_field() -> None:
     monitor["spec"]["endpoints"][0]["authorization"]["credentials"]["secretName"] = "x"
     with pytest.raises(jsonschema.ValidationError, match="secretName"):
         jsonschema.validate(monitor, SERVICE_MONITOR_SCHEMA)
+    (route,) = of_kind("sharded", "HTTPRoute")
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["matches"][0]["queryParam"] = [{"name": "category", "value": "x"}]
+    with pytest.raises(jsonschema.ValidationError, match="queryParam"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["matches"][0]["queryParams"][0]["type"] = "exact"
+    with pytest.raises(jsonschema.ValidationError, match="exact"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["backendRefs"][0]["serviceName"] = "catalign-api"
+    with pytest.raises(jsonschema.ValidationError, match="serviceName"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -323,29 +504,40 @@ def test_containers_resolve_to_the_intended_settings(
         assert "CATALIGN_THREADS_PER_WORKER" in env_of(container)
         cpus = math.ceil(cpu_cores(str(container["resources"]["limits"]["cpu"])))
         assert settings.workers * settings.worker_threads <= cpus, name
-        if name == API:
+        shard = shard_of(deployment)
+        if name == named(API, shard):
             assert settings.read_only, "the readers must run --read-only"
             assert "--read-only" in container["args"]
             assert settings.grpc_port == ports["grpc"] == defaults["grpc_port"].default == 50051
             assert mounts[str(settings.library)].get("readOnly") is True
         else:
-            assert name == WRITER and not settings.read_only and not settings.grpc_enabled
+            assert name == named(WRITER, shard)
+            assert not settings.read_only and not settings.grpc_enabled
             assert "grpc" not in ports and not mounts[str(settings.library)].get("readOnly")
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_one_writer_and_a_shared_library(overlay: str) -> None:
-    assert set(served_deployments(overlay)) == {API, WRITER}
-    writer = find(overlay, "Deployment", WRITER)
-    assert writer["spec"]["replicas"] == 1
-    assert writer["spec"]["strategy"] == {"type": "Recreate"}
-    claims = set()
-    for deployment in served_deployments(overlay).values():
-        volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
-        claims.add(volumes["library"]["persistentVolumeClaim"]["claimName"])
-    (claim,) = claims
-    modes = find(overlay, "PersistentVolumeClaim", claim)["spec"]["accessModes"]
-    assert modes == (["ReadWriteOnce"] if overlay in SINGLE_NODE else ["ReadWriteMany"])
+    """Per shard (the whole overlay where it has none): readers and one writer, sharing one
+    library that no other shard mounts."""
+    shards = shard_names(overlay)
+    expected = {named(name, shard) for shard in shards for name in (API, WRITER)}
+    assert set(served_deployments(overlay)) == expected
+    claims: dict[str, str | None] = {}
+    for shard in shards:
+        writer = find(overlay, "Deployment", named(WRITER, shard))
+        assert writer["spec"]["replicas"] == 1
+        assert writer["spec"]["strategy"] == {"type": "Recreate"}
+        for name in (API, WRITER):
+            deployment = find(overlay, "Deployment", named(name, shard))
+            labels = deployment["spec"]["template"]["metadata"]["labels"]
+            assert shard_of(deployment) == labels.get(SHARD_LABEL) == shard
+            claim = library_claim(deployment)
+            assert claims.setdefault(claim, shard) == shard, f"{claim}: shared across shards"
+    assert len(claims) == len(shards)
+    for claim in claims:
+        modes = find(overlay, "PersistentVolumeClaim", claim)["spec"]["accessModes"]
+        assert modes == (["ReadWriteOnce"] if overlay in SINGLE_NODE else ["ReadWriteMany"])
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -440,7 +632,9 @@ def test_service_variables_cannot_leak_into_the_settings(
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_services_select_their_own_pods_on_named_ports(overlay: str) -> None:
     deployments = served_deployments(overlay)
-    for name in (API, WRITER):
+    names = [named(name, shard) for shard in shard_names(overlay) for name in (API, WRITER)]
+    assert {s["metadata"]["name"] for s in of_kind(overlay, "Service")} == set(names)
+    for name in names:
         service = find(overlay, "Service", name)
         selector = service["spec"]["selector"]
         for other, deployment in deployments.items():
@@ -450,32 +644,38 @@ def test_services_select_their_own_pods_on_named_ports(overlay: str) -> None:
         ports = {p["name"]: p["containerPort"] for p in container["ports"]}
         for port in service["spec"]["ports"]:
             assert ports[port["targetPort"]] == port["port"]
-    api_ports = {p["name"]: p["port"] for p in find(overlay, "Service", API)["spec"]["ports"]}
-    assert api_ports == {"http": 8000, "grpc": 50051}
+    for shard in shard_names(overlay):
+        api = find(overlay, "Service", named(API, shard))
+        assert {p["name"]: p["port"] for p in api["spec"]["ports"]} == {"http": 8000, "grpc": 50051}
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_the_autoscaler_and_the_budget_act_on_the_readers(overlay: str) -> None:
-    api = find(overlay, "Deployment", API)
-    (hpa,) = of_kind(overlay, "HorizontalPodAutoscaler")
-    assert hpa["spec"]["scaleTargetRef"] == {
-        "apiVersion": "apps/v1",
-        "kind": "Deployment",
-        "name": API,
-    }
-    assert 1 <= hpa["spec"]["minReplicas"] <= hpa["spec"]["maxReplicas"]
-    metrics = hpa["spec"]["metrics"]
-    assert metrics[0]["type"] == "Resource" and metrics[0]["resource"]["name"] == "cpu"
-    assert "cpu" in main_container(api)["resources"]["requests"]  # Utilization needs it
+    """One HPA and one PDB per shard, acting on that shard's readers and on no other pods."""
+    shards = shard_names(overlay)
+    assert len(of_kind(overlay, "HorizontalPodAutoscaler")) == len(shards)
+    assert len(of_kind(overlay, "PodDisruptionBudget")) == len(shards)
     gauges = {m.name for m in Metrics().registry.collect() if m.type == "gauge"}
-    for metric in metrics[1:]:
-        assert metric["type"] == "Pods"
-        assert metric["pods"]["metric"]["name"] in gauges  # as catalign.api.metrics exports it
-    (pdb,) = of_kind(overlay, "PodDisruptionBudget")
-    labels = api["spec"]["template"]["metadata"]["labels"]
-    assert selects(pdb["spec"]["selector"]["matchLabels"], labels)
-    writer_labels = find(overlay, "Deployment", WRITER)["spec"]["template"]["metadata"]["labels"]
-    assert not selects(pdb["spec"]["selector"]["matchLabels"], writer_labels)
+    for shard in shards:
+        name = named(API, shard)
+        api = find(overlay, "Deployment", name)
+        hpa = find(overlay, "HorizontalPodAutoscaler", name)
+        assert hpa["spec"]["scaleTargetRef"] == {
+            "apiVersion": "apps/v1",
+            "kind": "Deployment",
+            "name": name,
+        }
+        assert 1 <= hpa["spec"]["minReplicas"] <= hpa["spec"]["maxReplicas"]
+        metrics = hpa["spec"]["metrics"]
+        assert metrics[0]["type"] == "Resource" and metrics[0]["resource"]["name"] == "cpu"
+        assert "cpu" in main_container(api)["resources"]["requests"]  # Utilization needs it
+        for metric in metrics[1:]:
+            assert metric["type"] == "Pods"
+            assert metric["pods"]["metric"]["name"] in gauges  # as catalign.api.metrics has it
+        pdb = find(overlay, "PodDisruptionBudget", name)
+        for other, deployment in served_deployments(overlay).items():
+            labels = deployment["spec"]["template"]["metadata"]["labels"]
+            assert selects(pdb["spec"]["selector"]["matchLabels"], labels) == (other == name)
 
 
 def test_queue_depth_scaling_uses_the_exported_gauge_through_the_adapter() -> None:
@@ -495,10 +695,10 @@ def test_the_service_monitor_scrapes_metrics_of_the_services(overlay: str) -> No
     if overlay in SINGLE_NODE:
         assert monitors == []  # no Prometheus Operator CRDs on a development cluster
         return
-    (monitor,) = monitors
-    for name in (API, WRITER):
-        service = find(overlay, "Service", name)
-        assert selects(monitor["spec"]["selector"]["matchLabels"], service["metadata"]["labels"])
+    assert len(monitors) == len(shard_names(overlay))  # one per shard
+    for service in of_kind(overlay, "Service"):
+        labels = service["metadata"]["labels"]
+        (monitor,) = [m for m in monitors if selects(m["spec"]["selector"]["matchLabels"], labels)]
         port_names = {p["name"] for p in service["spec"]["ports"]}
         for endpoint in monitor["spec"]["endpoints"]:
             assert endpoint["port"] in port_names
