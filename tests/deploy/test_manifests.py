@@ -36,6 +36,7 @@ from typing import Any
 import httpx
 import jsonschema
 import kubernetes_validate
+import numpy as np
 import pytest
 import typer
 import yaml
@@ -46,7 +47,9 @@ from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.library.sources import validate_category
 from catalign.registration.config import parse_options
+from catalign_client import Client
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -713,3 +716,153 @@ def test_images_are_catalign_and_pinned_outside_development(overlay: str) -> Non
             repository, _, tag = container["image"].rpartition(":")
             assert repository.rsplit("/", 1)[-1] == "catalign", container["image"]
             assert tag and (overlay in SINGLE_NODE or tag != "latest"), container["image"]
+
+
+# Sharding by category ---------------------------------------------------------------------------
+
+
+def http_route(overlay: str) -> dict[str, Any]:
+    (route,) = of_kind(overlay, "HTTPRoute")
+    return route
+
+
+def reader_shard(overlay: str, service_name: str) -> str | None:
+    """The shard whose readers the Service selects: one reader Deployment and no other."""
+    selector = find(overlay, "Service", service_name)["spec"]["selector"]
+    chosen = [
+        d
+        for d in served_deployments(overlay).values()
+        if selects(selector, d["spec"]["template"]["metadata"]["labels"])
+    ]
+    (deployment,) = chosen
+    shard = shard_of(deployment)
+    assert deployment["metadata"]["name"] == named(API, shard), f"{service_name}: not readers"
+    return shard
+
+
+def routed_service(route: dict[str, Any], request: httpx.Request) -> str:
+    """The Service that ``route`` sends ``request`` to, as the Gateway API matches: a rule
+    matches when one of its matches does (a rule without matches, every request); of the matches
+    that hold, an exact path beats a prefix, a longer prefix a shorter one, more query parameter
+    matches fewer, and then the earlier rule wins. (Method and header matches, which rank
+    between, are refused by HTTP_ROUTE_SCHEMA.)"""
+    path, params = request.url.path, request.url.params
+    held = []
+    for order, rule in enumerate(route["spec"]["rules"]):
+        for match in rule.get("matches") or [{}]:
+            kind = match.get("path", {}).get("type", "PathPrefix")
+            value = match.get("path", {}).get("value", "/")
+            assert kind in ("Exact", "PathPrefix"), kind
+            prefix = value.rstrip("/")
+            hit = path == value if kind == "Exact" else path.startswith(prefix + "/")
+            hit = hit or (kind == "PathPrefix" and path == prefix)
+            queries = match.get("queryParams", [])
+            assert all(q.get("type", "Exact") == "Exact" for q in queries)
+            if hit and all(params.get(q["name"]) == q["value"] for q in queries):
+                held.append(((kind != "Exact", -len(value), -len(queries), order), rule))
+    assert held, f"no rule takes {request.url}"
+    _, rule = min(held, key=lambda pair: pair[0])
+    (backend,) = rule["backendRefs"]
+    return backend["name"]
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_every_route_leads_to_the_readers_of_one_shard(overlay: str) -> None:
+    route = http_route(overlay)
+    assert route["spec"]["parentRefs"], "a route needs its Gateway"
+    namespace = route["metadata"].get("namespace")
+    for rule in route["spec"]["rules"]:
+        (backend,) = rule["backendRefs"]
+        assert backend.get("group", "") == "" and backend.get("kind", "Service") == "Service"
+        assert "namespace" not in backend  # the route's own, where the Services are
+        service = find(overlay, "Service", backend["name"])
+        assert service["metadata"].get("namespace") == namespace
+        ports = {p["port"]: p["name"] for p in service["spec"]["ports"]}
+        assert ports.get(backend.get("port")) == "http", "a Service backend needs its HTTP port"
+        reader_shard(overlay, backend["name"])
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_each_category_route_reaches_the_shard_whose_library_is_named_for_it(
+    overlay: str,
+) -> None:
+    """A rule per shard but the default: every match of it takes the category's exact value on
+    every path; the one rule without a category takes every path to the default shard."""
+    routed: dict[str, str | None] = {}
+    fallbacks = []
+    everywhere = {"type": "PathPrefix", "value": "/"}
+    for rule in http_route(overlay)["spec"]["rules"]:
+        (backend,) = rule["backendRefs"]
+        shard = reader_shard(overlay, backend["name"])
+        matches = rule.get("matches", [])
+        assert all(m.get("path", everywhere) == everywhere for m in matches)
+        queries = {
+            tuple((q["name"], q.get("type", "Exact"), q["value"]) for q in m.get("queryParams", []))
+            for m in matches
+        }
+        if queries <= {()}:
+            fallbacks.append(shard)
+            continue
+        ((query,),) = queries  # every match of the rule: the same one query parameter
+        name, kind, category = query
+        assert (name, kind) == ("category", "Exact")
+        assert validate_category(category) == category == shard != DEFAULT_SHARD
+        assert category not in routed, f"two rules for {category}"
+        routed[category] = shard
+    assert fallbacks == [DEFAULT_SHARD]
+    assert set(routed) | {DEFAULT_SHARD} == set(shard_names(overlay))
+    for shard in shard_names(overlay):
+        reader = find(overlay, "Deployment", named(API, shard))
+        assert library_claim(reader) == named(LIBRARY, shard)
+        volumes = {v["name"]: v for v in reader["spec"]["template"]["spec"]["volumes"]}
+        assert volumes["library"]["persistentVolumeClaim"]["readOnly"] is True
+        mounts = {m["name"]: m for m in main_container(reader)["volumeMounts"]}
+        assert mounts["library"]["readOnly"] is True
+
+
+class _Sent(Exception):
+    """Not an error: the request the SDK handed to the network, stopped there."""
+
+    def __init__(self, request: httpx.Request) -> None:
+        self.request = request
+
+
+def sdk_request(call: Any) -> httpx.Request:
+    """The HTTP request that ``call(client)`` makes with the SDK's :class:`Client`."""
+
+    def send(request: httpx.Request) -> httpx.Response:
+        raise _Sent(request)
+
+    transport = httpx.MockTransport(send)
+    with (
+        Client("http://gateway.test", retries=0, transport=transport) as client,
+        pytest.raises(_Sent) as sent,
+    ):
+        call(client)
+    return sent.value.request
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_the_sdk_reaches_the_shard_of_its_category(overlay: str, tmp_path: Path) -> None:
+    """Registrations (binary points and files) and model listings carry ``category=`` in the
+    query, so the route takes them to their shard; without a category, with one that has no
+    shard, or in a JSON body, which the route does not read, they go to the default shard."""
+    route = http_route(overlay)
+    points = np.random.default_rng(0).random((64, 3))
+    scan = tmp_path / "scan.xyz"
+    np.savetxt(scan, points)
+
+    def shard_for(call: Any) -> str | None:
+        return reader_shard(overlay, routed_service(route, sdk_request(call)))
+
+    unsharded = "sofa"
+    assert unsharded not in shard_names(overlay)
+    for category in (*shard_names(overlay), unsharded):
+        shard = category if category in shard_names(overlay) else DEFAULT_SHARD
+        assert shard_for(lambda c, k=category: c.align(points, category=k)) == shard
+        assert shard_for(lambda c, k=category: c.align_file(scan, category=k)) == shard
+        assert shard_for(lambda c, k=category: c.models(category=k)) == shard
+        json_body = shard_for(lambda c, k=category: c.align(points, category=k, encoding="json"))
+        assert json_body == DEFAULT_SHARD
+    assert shard_for(lambda c: c.align(points)) == DEFAULT_SHARD
+    assert shard_for(lambda c: c.models()) == DEFAULT_SHARD
