@@ -6,14 +6,18 @@ strict mode (unknown fields refused) against the Kubernetes API schemas that the
 ``kubernetes-validate`` wheel bundles, for 1.31 (the oldest release these manifests aim at) and
 the newest bundled. The ServiceMonitor is a CRD that kubernetes-validate knows nothing of: the
 test checks that it says so, then validates it against ``SERVICE_MONITOR_SCHEMA`` below, the
-subset of the Prometheus Operator's schema that these manifests use (unknown fields refused).
+subset of the Prometheus Operator's schema that these manifests use (unknown fields refused);
+the Gateway API's HTTPRoute likewise, against ``HTTP_ROUTE_SCHEMA``.
 Then the contract: the probes hit routes the app serves, the ports are the CLI's defaults, each
 container's arguments and ``CATALIGN_*`` variables resolve through the real CLI and settings
-classes, the readers run ``--read-only``, one writer, the HPA and the PDB act on the readers,
-the queue metric is one the service exports, the API key comes from a Secret file (and the
-ServiceMonitor sends the same Secret key as ``Authorization: Bearer``, which opens /metrics), and
-every container runs non-root on a read-only root filesystem with emptyDirs where the service
-writes.
+classes, the readers run ``--read-only``, one writer per library, the HPA and the PDB act on the
+readers, the queue metric is one the service exports, the API key comes from a Secret file (and
+the ServiceMonitor sends the same Secret key as ``Authorization: Bearer``, which opens /metrics),
+and every container runs non-root on a read-only root filesystem with emptyDirs where the service
+writes. An overlay sharded by category holds all of that once per shard (named with the shard's
+suffix), and its HTTPRoute sends each category, as the SDK sends it, to the shard whose library
+is named for it, and everything else to the default shard; each shard's writer seeds only the
+shard's own categories.
 """
 
 from __future__ import annotations
@@ -21,9 +25,11 @@ from __future__ import annotations
 import asyncio
 import copy
 import functools
+import json
 import math
 import os
 import re
+import runpy
 import shlex
 import subprocess
 from pathlib import Path
@@ -32,6 +38,7 @@ from typing import Any
 import httpx
 import jsonschema
 import kubernetes_validate
+import numpy as np
 import pytest
 import typer
 import yaml
@@ -42,7 +49,11 @@ from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.library.loaded import load
+from catalign.library.sources import validate_category
+from catalign.library.store import read_manifest
 from catalign.registration.config import parse_options
+from catalign_client import Client
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -50,7 +61,12 @@ OVERLAYS = sorted(p.parent.name for p in (DEPLOY / "overlays").glob("*/kustomiza
 VERSIONS = ("1.31.0", latest_version())
 # Overlays for a one-node cluster, where a ReadWriteOnce library is shared by every pod.
 SINGLE_NODE = {"dev"}
-API, WRITER = "catalign-api", "catalign-writer"
+API, WRITER, LIBRARY = "catalign-api", "catalign-writer", "catalign-library"
+# Overlays sharded by category: each shard's resources are the unsharded ones' with the suffix
+# -<shard> and the label catalign/shard=<shard>; the shard `default` serves every category
+# without a shard of its own, and requests that name none.
+SHARDED = {"sharded"}
+SHARD_LABEL, DEFAULT_SHARD = "catalign/shard", "default"
 
 # The Prometheus Operator's ServiceMonitor (monitoring.coreos.com/v1), cut to the fields used
 # here; field names and types as in its CRD. Anything else is refused, like strict mode does.
@@ -73,51 +89,179 @@ _SECRET_KEY_SELECTOR = {
         "optional": {"type": "boolean"},
     },
 }
-SERVICE_MONITOR_SCHEMA = {
-    "type": "object",
-    "additionalProperties": False,
-    "required": ["apiVersion", "kind", "metadata", "spec"],
-    "properties": {
-        "apiVersion": {"const": "monitoring.coreos.com/v1"},
-        "kind": {"const": "ServiceMonitor"},
-        "metadata": {
-            "type": "object",
-            "additionalProperties": False,
-            "required": ["name"],
-            "properties": {
-                "name": {"type": "string", "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"},
-                "namespace": {"type": "string"},
-                "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+
+
+def custom_resource_schema(api_version: str, kind: str, spec: dict[str, Any]) -> dict[str, Any]:
+    """A custom resource of ``kind``: name, namespace and labels, and ``spec``, nothing else."""
+    return {
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["apiVersion", "kind", "metadata", "spec"],
+        "properties": {
+            "apiVersion": {"const": api_version},
+            "kind": {"const": kind},
+            "metadata": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["name"],
+                "properties": {
+                    "name": {"type": "string", "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"},
+                    "namespace": {"type": "string"},
+                    "labels": {"type": "object", "additionalProperties": {"type": "string"}},
+                },
+            },
+            "spec": spec,
+        },
+    }
+
+
+SERVICE_MONITOR_SCHEMA = custom_resource_schema(
+    "monitoring.coreos.com/v1",
+    "ServiceMonitor",
+    {
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["selector", "endpoints"],
+        "properties": {
+            "selector": _LABEL_SELECTOR,
+            "namespaceSelector": {"type": "object"},
+            "jobLabel": {"type": "string"},
+            "endpoints": {
+                "type": "array",
+                "minItems": 1,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "required": ["port"],
+                    "properties": {
+                        "port": {"type": "string"},
+                        "path": {"type": "string", "pattern": "^/"},
+                        "scheme": {"enum": ["http", "https"]},
+                        "interval": _DURATION,
+                        "scrapeTimeout": _DURATION,
+                        "honorLabels": {"type": "boolean"},
+                        "authorization": {
+                            "type": "object",
+                            "additionalProperties": False,
+                            "properties": {
+                                "type": {"type": "string"},
+                                "credentials": _SECRET_KEY_SELECTOR,
+                            },
+                        },
+                    },
+                },
             },
         },
-        "spec": {
+    },
+)
+
+# The Gateway API's HTTPRoute (gateway.networking.k8s.io/v1, standard channel), cut to the fields
+# used here; names, types, bounds and patterns as in its CRD (a path's leading "/", a CEL rule
+# there, is a pattern here). Anything else is refused.
+_DNS_SUBDOMAIN = {"type": "string", "minLength": 1, "maxLength": 253}
+_PORT_NUMBER = {"type": "integer", "minimum": 1, "maximum": 65535}
+_GROUP = {
+    "type": "string",
+    "maxLength": 253,
+    "pattern": r"^$|^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$",
+}
+_KIND = {
+    "type": "string",
+    "minLength": 1,
+    "maxLength": 63,
+    "pattern": r"^[a-zA-Z]([-a-zA-Z0-9]*[a-zA-Z0-9])?$",
+}
+_NAMESPACE = {
+    "type": "string",
+    "minLength": 1,
+    "maxLength": 63,
+    "pattern": r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$",
+}
+_HTTP_ROUTE_MATCH = {
+    "type": "object",
+    "additionalProperties": False,
+    "properties": {
+        "path": {
             "type": "object",
             "additionalProperties": False,
-            "required": ["selector", "endpoints"],
             "properties": {
-                "selector": _LABEL_SELECTOR,
-                "namespaceSelector": {"type": "object"},
-                "jobLabel": {"type": "string"},
-                "endpoints": {
-                    "type": "array",
-                    "minItems": 1,
-                    "items": {
-                        "type": "object",
-                        "additionalProperties": False,
-                        "required": ["port"],
-                        "properties": {
-                            "port": {"type": "string"},
-                            "path": {"type": "string", "pattern": "^/"},
-                            "scheme": {"enum": ["http", "https"]},
-                            "interval": _DURATION,
-                            "scrapeTimeout": _DURATION,
-                            "honorLabels": {"type": "boolean"},
-                            "authorization": {
+                "type": {"enum": ["Exact", "PathPrefix", "RegularExpression"]},
+                "value": {"type": "string", "maxLength": 1024, "pattern": "^/"},
+            },
+        },
+        "queryParams": {
+            "type": "array",
+            "maxItems": 16,
+            "items": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["name", "value"],
+                "properties": {
+                    "type": {"enum": ["Exact", "RegularExpression"]},
+                    "name": {
+                        "type": "string",
+                        "minLength": 1,
+                        "maxLength": 256,
+                        "pattern": r"^[A-Za-z0-9!#$%&'*+\-.^_`|~]+$",
+                    },
+                    "value": {"type": "string", "minLength": 1, "maxLength": 1024},
+                },
+            },
+        },
+    },
+}
+# What a parentRef and a backendRef have in common: the object referred to, and its port.
+_REFERENCE = {
+    "group": _GROUP,
+    "kind": _KIND,
+    "namespace": _NAMESPACE,
+    "name": _DNS_SUBDOMAIN,
+    "port": _PORT_NUMBER,
+}
+HTTP_ROUTE_SCHEMA = custom_resource_schema(
+    "gateway.networking.k8s.io/v1",
+    "HTTPRoute",
+    {
+        "type": "object",
+        "additionalProperties": False,
+        "properties": {
+            "parentRefs": {
+                "type": "array",
+                "maxItems": 32,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "required": ["name"],
+                    "properties": {**_REFERENCE, "sectionName": _DNS_SUBDOMAIN},
+                },
+            },
+            "hostnames": {
+                "type": "array",
+                "maxItems": 16,
+                "items": {
+                    **_DNS_SUBDOMAIN,
+                    "pattern": r"^(\*\.)?[a-z0-9]([-a-z0-9]*[a-z0-9])?"
+                    r"(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$",
+                },
+            },
+            "rules": {
+                "type": "array",
+                "maxItems": 16,
+                "items": {
+                    "type": "object",
+                    "additionalProperties": False,
+                    "properties": {
+                        "matches": {"type": "array", "maxItems": 64, "items": _HTTP_ROUTE_MATCH},
+                        "backendRefs": {
+                            "type": "array",
+                            "maxItems": 16,
+                            "items": {
                                 "type": "object",
                                 "additionalProperties": False,
+                                "required": ["name"],
                                 "properties": {
-                                    "type": {"type": "string"},
-                                    "credentials": _SECRET_KEY_SELECTOR,
+                                    **_REFERENCE,
+                                    "weight": {"type": "integer", "minimum": 0, "maximum": 1000000},
                                 },
                             },
                         },
@@ -126,6 +270,11 @@ SERVICE_MONITOR_SCHEMA = {
             },
         },
     },
+)
+# Custom resources that kubernetes-validate has no schema for, and the subset schemas above.
+CRD_SCHEMAS = {
+    ("monitoring.coreos.com/v1", "ServiceMonitor"): SERVICE_MONITOR_SCHEMA,
+    ("gateway.networking.k8s.io/v1", "HTTPRoute"): HTTP_ROUTE_SCHEMA,
 }
 
 
@@ -250,8 +399,33 @@ def served_deployments(overlay: str) -> dict[str, dict[str, Any]]:
     return {d["metadata"]["name"]: d for d in of_kind(overlay, "Deployment")}
 
 
+def named(name: str, shard: str | None) -> str:
+    """The name ``name`` takes in ``shard`` (None: in an overlay without shards)."""
+    return name if shard is None else f"{name}-{shard}"
+
+
+def shard_of(resource: dict[str, Any]) -> str | None:
+    return resource["metadata"].get("labels", {}).get(SHARD_LABEL)
+
+
+@functools.cache
+def shard_names(overlay: str) -> tuple[str | None, ...]:
+    """The overlay's shards, as its Deployments are labelled: ``(None,)`` where it has none."""
+    names = {shard_of(d) for d in served_deployments(overlay).values()}
+    if overlay not in SHARDED:
+        assert names == {None}, f"{overlay}: shard labels outside a sharded overlay"
+        return (None,)
+    assert None not in names and DEFAULT_SHARD in names and len(names) > 1, names
+    return tuple(sorted(names))
+
+
+def library_claim(deployment: dict[str, Any]) -> str:
+    volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
+    return volumes["library"]["persistentVolumeClaim"]["claimName"]
+
+
 def test_the_overlays_are_found() -> None:
-    assert {"dev", "production", "production-queue-depth"} <= set(OVERLAYS)
+    assert {"dev", "production", "production-queue-depth", "sharded"} <= set(OVERLAYS)
 
 
 @pytest.mark.parametrize("version", VERSIONS)
@@ -262,10 +436,11 @@ def test_every_resource_validates_strictly(overlay: str, version: str) -> None:
     assert "PersistentVolumeClaim" in kinds
     for resource in render(overlay):
         where = f"{overlay}: {resource['kind']} {resource['metadata']['name']}"
-        if resource["apiVersion"].startswith("monitoring.coreos.com/"):
+        custom = CRD_SCHEMAS.get((resource["apiVersion"], resource["kind"]))
+        if custom is not None:
             with pytest.raises(SchemaNotFoundError):  # a CRD: no schema bundled
                 kubernetes_validate.validate(resource, version, strict=True)
-            jsonschema.validate(resource, SERVICE_MONITOR_SCHEMA)
+            jsonschema.validate(resource, custom)
             continue
         try:
             kubernetes_validate.validate(resource, version, strict=True)
@@ -288,6 +463,19 @@ def test_strict_validation_refuses_a_misspelt_field() -> None:
     monitor["spec"]["endpoints"][0]["authorization"]["credentials"]["secretName"] = "x"
     with pytest.raises(jsonschema.ValidationError, match="secretName"):
         jsonschema.validate(monitor, SERVICE_MONITOR_SCHEMA)
+    (route,) = of_kind("sharded", "HTTPRoute")
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["matches"][0]["queryParam"] = [{"name": "category", "value": "x"}]
+    with pytest.raises(jsonschema.ValidationError, match="queryParam"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["matches"][0]["queryParams"][0]["type"] = "exact"
+    with pytest.raises(jsonschema.ValidationError, match="exact"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
+    misspelt = copy.deepcopy(route)
+    misspelt["spec"]["rules"][0]["backendRefs"][0]["serviceName"] = "catalign-api"
+    with pytest.raises(jsonschema.ValidationError, match="serviceName"):
+        jsonschema.validate(misspelt, HTTP_ROUTE_SCHEMA)
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -323,29 +511,40 @@ def test_containers_resolve_to_the_intended_settings(
         assert "CATALIGN_THREADS_PER_WORKER" in env_of(container)
         cpus = math.ceil(cpu_cores(str(container["resources"]["limits"]["cpu"])))
         assert settings.workers * settings.worker_threads <= cpus, name
-        if name == API:
+        shard = shard_of(deployment)
+        if name == named(API, shard):
             assert settings.read_only, "the readers must run --read-only"
             assert "--read-only" in container["args"]
             assert settings.grpc_port == ports["grpc"] == defaults["grpc_port"].default == 50051
             assert mounts[str(settings.library)].get("readOnly") is True
         else:
-            assert name == WRITER and not settings.read_only and not settings.grpc_enabled
+            assert name == named(WRITER, shard)
+            assert not settings.read_only and not settings.grpc_enabled
             assert "grpc" not in ports and not mounts[str(settings.library)].get("readOnly")
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_one_writer_and_a_shared_library(overlay: str) -> None:
-    assert set(served_deployments(overlay)) == {API, WRITER}
-    writer = find(overlay, "Deployment", WRITER)
-    assert writer["spec"]["replicas"] == 1
-    assert writer["spec"]["strategy"] == {"type": "Recreate"}
-    claims = set()
-    for deployment in served_deployments(overlay).values():
-        volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
-        claims.add(volumes["library"]["persistentVolumeClaim"]["claimName"])
-    (claim,) = claims
-    modes = find(overlay, "PersistentVolumeClaim", claim)["spec"]["accessModes"]
-    assert modes == (["ReadWriteOnce"] if overlay in SINGLE_NODE else ["ReadWriteMany"])
+    """Per shard (the whole overlay where it has none): readers and one writer, sharing one
+    library that no other shard mounts."""
+    shards = shard_names(overlay)
+    expected = {named(name, shard) for shard in shards for name in (API, WRITER)}
+    assert set(served_deployments(overlay)) == expected
+    claims: dict[str, str | None] = {}
+    for shard in shards:
+        writer = find(overlay, "Deployment", named(WRITER, shard))
+        assert writer["spec"]["replicas"] == 1
+        assert writer["spec"]["strategy"] == {"type": "Recreate"}
+        for name in (API, WRITER):
+            deployment = find(overlay, "Deployment", named(name, shard))
+            labels = deployment["spec"]["template"]["metadata"]["labels"]
+            assert shard_of(deployment) == labels.get(SHARD_LABEL) == shard
+            claim = library_claim(deployment)
+            assert claims.setdefault(claim, shard) == shard, f"{claim}: shared across shards"
+    assert len(claims) == len(shards)
+    for claim in claims:
+        modes = find(overlay, "PersistentVolumeClaim", claim)["spec"]["accessModes"]
+        assert modes == (["ReadWriteOnce"] if overlay in SINGLE_NODE else ["ReadWriteMany"])
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -440,7 +639,9 @@ def test_service_variables_cannot_leak_into_the_settings(
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_services_select_their_own_pods_on_named_ports(overlay: str) -> None:
     deployments = served_deployments(overlay)
-    for name in (API, WRITER):
+    names = [named(name, shard) for shard in shard_names(overlay) for name in (API, WRITER)]
+    assert {s["metadata"]["name"] for s in of_kind(overlay, "Service")} == set(names)
+    for name in names:
         service = find(overlay, "Service", name)
         selector = service["spec"]["selector"]
         for other, deployment in deployments.items():
@@ -450,32 +651,38 @@ def test_services_select_their_own_pods_on_named_ports(overlay: str) -> None:
         ports = {p["name"]: p["containerPort"] for p in container["ports"]}
         for port in service["spec"]["ports"]:
             assert ports[port["targetPort"]] == port["port"]
-    api_ports = {p["name"]: p["port"] for p in find(overlay, "Service", API)["spec"]["ports"]}
-    assert api_ports == {"http": 8000, "grpc": 50051}
+    for shard in shard_names(overlay):
+        api = find(overlay, "Service", named(API, shard))
+        assert {p["name"]: p["port"] for p in api["spec"]["ports"]} == {"http": 8000, "grpc": 50051}
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
 def test_the_autoscaler_and_the_budget_act_on_the_readers(overlay: str) -> None:
-    api = find(overlay, "Deployment", API)
-    (hpa,) = of_kind(overlay, "HorizontalPodAutoscaler")
-    assert hpa["spec"]["scaleTargetRef"] == {
-        "apiVersion": "apps/v1",
-        "kind": "Deployment",
-        "name": API,
-    }
-    assert 1 <= hpa["spec"]["minReplicas"] <= hpa["spec"]["maxReplicas"]
-    metrics = hpa["spec"]["metrics"]
-    assert metrics[0]["type"] == "Resource" and metrics[0]["resource"]["name"] == "cpu"
-    assert "cpu" in main_container(api)["resources"]["requests"]  # Utilization needs it
+    """One HPA and one PDB per shard, acting on that shard's readers and on no other pods."""
+    shards = shard_names(overlay)
+    assert len(of_kind(overlay, "HorizontalPodAutoscaler")) == len(shards)
+    assert len(of_kind(overlay, "PodDisruptionBudget")) == len(shards)
     gauges = {m.name for m in Metrics().registry.collect() if m.type == "gauge"}
-    for metric in metrics[1:]:
-        assert metric["type"] == "Pods"
-        assert metric["pods"]["metric"]["name"] in gauges  # as catalign.api.metrics exports it
-    (pdb,) = of_kind(overlay, "PodDisruptionBudget")
-    labels = api["spec"]["template"]["metadata"]["labels"]
-    assert selects(pdb["spec"]["selector"]["matchLabels"], labels)
-    writer_labels = find(overlay, "Deployment", WRITER)["spec"]["template"]["metadata"]["labels"]
-    assert not selects(pdb["spec"]["selector"]["matchLabels"], writer_labels)
+    for shard in shards:
+        name = named(API, shard)
+        api = find(overlay, "Deployment", name)
+        hpa = find(overlay, "HorizontalPodAutoscaler", name)
+        assert hpa["spec"]["scaleTargetRef"] == {
+            "apiVersion": "apps/v1",
+            "kind": "Deployment",
+            "name": name,
+        }
+        assert 1 <= hpa["spec"]["minReplicas"] <= hpa["spec"]["maxReplicas"]
+        metrics = hpa["spec"]["metrics"]
+        assert metrics[0]["type"] == "Resource" and metrics[0]["resource"]["name"] == "cpu"
+        assert "cpu" in main_container(api)["resources"]["requests"]  # Utilization needs it
+        for metric in metrics[1:]:
+            assert metric["type"] == "Pods"
+            assert metric["pods"]["metric"]["name"] in gauges  # as catalign.api.metrics has it
+        pdb = find(overlay, "PodDisruptionBudget", name)
+        for other, deployment in served_deployments(overlay).items():
+            labels = deployment["spec"]["template"]["metadata"]["labels"]
+            assert selects(pdb["spec"]["selector"]["matchLabels"], labels) == (other == name)
 
 
 def test_queue_depth_scaling_uses_the_exported_gauge_through_the_adapter() -> None:
@@ -495,10 +702,10 @@ def test_the_service_monitor_scrapes_metrics_of_the_services(overlay: str) -> No
     if overlay in SINGLE_NODE:
         assert monitors == []  # no Prometheus Operator CRDs on a development cluster
         return
-    (monitor,) = monitors
-    for name in (API, WRITER):
-        service = find(overlay, "Service", name)
-        assert selects(monitor["spec"]["selector"]["matchLabels"], service["metadata"]["labels"])
+    assert len(monitors) == len(shard_names(overlay))  # one per shard
+    for service in of_kind(overlay, "Service"):
+        labels = service["metadata"]["labels"]
+        (monitor,) = [m for m in monitors if selects(m["spec"]["selector"]["matchLabels"], labels)]
         port_names = {p["name"] for p in service["spec"]["ports"]}
         for endpoint in monitor["spec"]["endpoints"]:
             assert endpoint["port"] in port_names
@@ -513,3 +720,260 @@ def test_images_are_catalign_and_pinned_outside_development(overlay: str) -> Non
             repository, _, tag = container["image"].rpartition(":")
             assert repository.rsplit("/", 1)[-1] == "catalign", container["image"]
             assert tag and (overlay in SINGLE_NODE or tag != "latest"), container["image"]
+
+
+# Sharding by category ---------------------------------------------------------------------------
+
+
+def http_route(overlay: str) -> dict[str, Any]:
+    (route,) = of_kind(overlay, "HTTPRoute")
+    return route
+
+
+def reader_shard(overlay: str, service_name: str) -> str | None:
+    """The shard whose readers the Service selects: one reader Deployment and no other."""
+    selector = find(overlay, "Service", service_name)["spec"]["selector"]
+    chosen = [
+        d
+        for d in served_deployments(overlay).values()
+        if selects(selector, d["spec"]["template"]["metadata"]["labels"])
+    ]
+    (deployment,) = chosen
+    shard = shard_of(deployment)
+    assert deployment["metadata"]["name"] == named(API, shard), f"{service_name}: not readers"
+    return shard
+
+
+def routed_service(route: dict[str, Any], request: httpx.Request) -> str:
+    """The Service that ``route`` sends ``request`` to, as the Gateway API matches: a rule
+    matches when one of its matches does (a rule without matches, every request); of the matches
+    that hold, an exact path beats a prefix, a longer prefix a shorter one, more query parameter
+    matches fewer, and then the earlier rule wins. (Method and header matches, which rank
+    between, are refused by HTTP_ROUTE_SCHEMA.)"""
+    path, params = request.url.path, request.url.params
+    held = []
+    for order, rule in enumerate(route["spec"]["rules"]):
+        for match in rule.get("matches") or [{}]:
+            kind = match.get("path", {}).get("type", "PathPrefix")
+            value = match.get("path", {}).get("value", "/")
+            assert kind in ("Exact", "PathPrefix"), kind
+            prefix = value.rstrip("/")
+            hit = path == value if kind == "Exact" else path.startswith(prefix + "/")
+            hit = hit or (kind == "PathPrefix" and path == prefix)
+            queries = match.get("queryParams", [])
+            assert all(q.get("type", "Exact") == "Exact" for q in queries)
+            if hit and all(params.get(q["name"]) == q["value"] for q in queries):
+                held.append(((kind != "Exact", -len(value), -len(queries), order), rule))
+    assert held, f"no rule takes {request.url}"
+    _, rule = min(held, key=lambda pair: pair[0])
+    (backend,) = rule["backendRefs"]
+    return backend["name"]
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_every_route_leads_to_the_readers_of_one_shard(overlay: str) -> None:
+    route = http_route(overlay)
+    assert route["spec"]["parentRefs"], "a route needs its Gateway"
+    namespace = route["metadata"].get("namespace")
+    for rule in route["spec"]["rules"]:
+        (backend,) = rule["backendRefs"]
+        assert backend.get("group", "") == "" and backend.get("kind", "Service") == "Service"
+        assert "namespace" not in backend  # the route's own, where the Services are
+        service = find(overlay, "Service", backend["name"])
+        assert service["metadata"].get("namespace") == namespace
+        ports = {p["port"]: p["name"] for p in service["spec"]["ports"]}
+        assert ports.get(backend.get("port")) == "http", "a Service backend needs its HTTP port"
+        reader_shard(overlay, backend["name"])
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_each_category_route_reaches_the_shard_whose_library_is_named_for_it(
+    overlay: str,
+) -> None:
+    """A rule per shard but the default: every match of it takes the category's exact value on
+    every path; the one rule without a category takes every path to the default shard."""
+    routed: dict[str, str | None] = {}
+    fallbacks = []
+    everywhere = {"type": "PathPrefix", "value": "/"}
+    for rule in http_route(overlay)["spec"]["rules"]:
+        (backend,) = rule["backendRefs"]
+        shard = reader_shard(overlay, backend["name"])
+        matches = rule.get("matches", [])
+        assert all(m.get("path", everywhere) == everywhere for m in matches)
+        queries = {
+            tuple((q["name"], q.get("type", "Exact"), q["value"]) for q in m.get("queryParams", []))
+            for m in matches
+        }
+        if queries <= {()}:
+            fallbacks.append(shard)
+            continue
+        ((query,),) = queries  # every match of the rule: the same one query parameter
+        name, kind, category = query
+        assert (name, kind) == ("category", "Exact")
+        assert validate_category(category) == category == shard != DEFAULT_SHARD
+        assert category not in routed, f"two rules for {category}"
+        routed[category] = shard
+    assert fallbacks == [DEFAULT_SHARD]
+    assert set(routed) | {DEFAULT_SHARD} == set(shard_names(overlay))
+    for shard in shard_names(overlay):
+        reader = find(overlay, "Deployment", named(API, shard))
+        assert library_claim(reader) == named(LIBRARY, shard)
+        volumes = {v["name"]: v for v in reader["spec"]["template"]["spec"]["volumes"]}
+        assert volumes["library"]["persistentVolumeClaim"]["readOnly"] is True
+        mounts = {m["name"]: m for m in main_container(reader)["volumeMounts"]}
+        assert mounts["library"]["readOnly"] is True
+
+
+class _Sent(Exception):
+    """Not an error: the request the SDK handed to the network, stopped there."""
+
+    def __init__(self, request: httpx.Request) -> None:
+        self.request = request
+
+
+def sdk_request(call: Any) -> httpx.Request:
+    """The HTTP request that ``call(client)`` makes with the SDK's :class:`Client`."""
+
+    def send(request: httpx.Request) -> httpx.Response:
+        raise _Sent(request)
+
+    transport = httpx.MockTransport(send)
+    with (
+        Client("http://gateway.test", retries=0, transport=transport) as client,
+        pytest.raises(_Sent) as sent,
+    ):
+        call(client)
+    return sent.value.request
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_the_sdk_reaches_the_shard_of_its_category(overlay: str, tmp_path: Path) -> None:
+    """Registrations (binary points and files) and model listings carry ``category=`` in the
+    query, so the route takes them to their shard; without a category, with one that has no
+    shard, or in a JSON body, which the route does not read, they go to the default shard."""
+    route = http_route(overlay)
+    points = np.random.default_rng(0).random((64, 3))
+    scan = tmp_path / "scan.xyz"
+    np.savetxt(scan, points)
+
+    def shard_for(call: Any) -> str | None:
+        return reader_shard(overlay, routed_service(route, sdk_request(call)))
+
+    unsharded = "sofa"
+    assert unsharded not in shard_names(overlay)
+    for category in (*shard_names(overlay), unsharded):
+        shard = category if category in shard_names(overlay) else DEFAULT_SHARD
+        assert shard_for(lambda c, k=category: c.align(points, category=k)) == shard
+        assert shard_for(lambda c, k=category: c.align_file(scan, category=k)) == shard
+        assert shard_for(lambda c, k=category: c.models(category=k)) == shard
+        json_body = shard_for(lambda c, k=category: c.align(points, category=k, encoding="json"))
+        assert json_body == DEFAULT_SHARD
+    assert shard_for(lambda c: c.align(points)) == DEFAULT_SHARD
+    assert shard_for(lambda c: c.models()) == DEFAULT_SHARD
+
+
+def seed_run(
+    overlay: str, shard: str | None, library: Path, image: Path
+) -> tuple[Path, dict[str, str]]:
+    """The script and variables with which the shard's writer runs its seed-library init
+    container, to run here: the script its ConfigMap mounts (written beside ``library``), its
+    variables resolved from the pod's labels and the ConfigMap, the library's and the image
+    library's paths replaced by ``library`` and ``image``."""
+    writer = find(overlay, "Deployment", named(WRITER, shard))
+    pod = writer["spec"]["template"]["spec"]
+    (seed,) = [c for c in pod["initContainers"] if c["name"] == "seed-library"]
+    volumes = {v["name"]: v for v in pod["volumes"]}
+    mounts = {m["mountPath"]: m for m in seed["volumeMounts"]}
+    config_maps = {c["metadata"]["name"]: c["data"] for c in of_kind(overlay, "ConfigMap")}
+    env: dict[str, str] = {}
+    for var in seed["env"]:
+        source = var.get("valueFrom", {})
+        if "fieldRef" in source:
+            label = re.fullmatch(r"metadata\.labels\['(.+)'\]", source["fieldRef"]["fieldPath"])
+            assert label, source
+            env[var["name"]] = writer["spec"]["template"]["metadata"]["labels"][label[1]]
+        elif "configMapKeyRef" in source:
+            ref = source["configMapKeyRef"]
+            env[var["name"]] = config_maps[ref["name"]][ref["key"]]
+        else:
+            env[var["name"]] = var["value"]
+    served = env_of(main_container(writer))
+    assert env["CATALIGN_LIBRARY"] == served["CATALIGN_LIBRARY"]
+    assert mounts[env["CATALIGN_LIBRARY"]]["name"] == "library"
+    assert not mounts[env["CATALIGN_LIBRARY"]].get("readOnly")
+    assert env["SEED_FROM"] == str(Path(served["CATALIGN_MODEL_DIR"]) / "library")
+    env.update(CATALIGN_LIBRARY=str(library), SEED_FROM=str(image))
+    python, script_path = seed["command"]
+    assert python == "python"
+    script = Path(script_path)
+    mount = mounts[str(script.parent)]
+    config_map = volumes[mount["name"]]["configMap"]
+    (key,) = [i["key"] for i in config_map["items"] if i["path"] == script.name]
+    here = library.with_name(f"{library.name}-{script.name}")
+    here.write_text(config_maps[config_map["name"]][key], encoding="utf-8")
+    return here, env
+
+
+def run_seed(
+    script: Path,
+    env: dict[str, str],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> str:
+    """Run the seed script as a program, with only ``env`` of catalign's variables; return what
+    it printed."""
+    with monkeypatch.context() as patched:
+        for name in list(os.environ):
+            if name.startswith("CATALIGN_"):
+                patched.delenv(name)
+        for name, value in env.items():
+            patched.setenv(name, value)
+        with pytest.raises(SystemExit) as exit_status:
+            runpy.run_path(str(script), run_name="__main__")
+    printed = capsys.readouterr().out
+    assert exit_status.value.code == 0, printed
+    return printed
+
+
+@pytest.mark.parametrize("overlay", sorted(SHARDED))
+def test_each_shard_writer_seeds_only_its_own_categories(
+    overlay: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Run as each shard's writer runs it, on the image's library relabelled into the shards'
+    categories and a sofa category: a shard gets its own category's models, the default shard those
+    of categories without a shard (sofa), together every model once; each library loads, a
+    shard named for a category gives it to models added without one, and a second start
+    changes nothing."""
+    image = ROOT / "model_store" / "library"
+    relabelled = tmp_path / "image-library"
+    relabelled.mkdir()
+    (relabelled / "entries").symlink_to(image / "entries")
+    raw = json.loads((image / "manifest.json").read_text(encoding="utf-8"))
+    own = set(shard_names(overlay)) - {DEFAULT_SHARD}
+    categories = (*sorted(own), "sofa")  # sofa: a category without a shard of its own
+    for row, record in enumerate(raw["entries"].values()):
+        record["category"] = categories[row % len(categories)]
+    (relabelled / "manifest.json").write_text(json.dumps(raw), encoding="utf-8")
+    everything = read_manifest(relabelled)
+    assert "sofa" not in own
+    seeded: dict[str, str | None] = {}
+    for shard in shard_names(overlay):
+        library = tmp_path / f"library-{shard}"
+        script, env = seed_run(overlay, shard, library, relabelled)
+        assert env["SHARD"] == shard and set(env["SHARDS"].split()) == own
+        assert "seeded" in run_seed(script, env, monkeypatch, capsys)
+        written = (library / "manifest.json").read_bytes()
+        assert "not seeding" in run_seed(script, env, monkeypatch, capsys)
+        assert (library / "manifest.json").read_bytes() == written
+        manifest = read_manifest(library)
+        wanted = {shard} if shard != DEFAULT_SHARD else set(categories) - own
+        expected = {i for i, r in everything.entries.items() if r.category in wanted}
+        assert set(manifest.entries) == expected and expected
+        assert manifest.category == (shard if shard != DEFAULT_SHARD else everything.category)
+        assert len(load(library, manifest.fingerprint)) == len(expected)
+        for model_id in manifest.entries:
+            assert seeded.setdefault(model_id, shard) == shard
+    assert set(seeded) == set(everything.entries)
