@@ -113,7 +113,9 @@ def test_a_journal_of_another_build_or_a_changed_source_is_not_trusted(
 
 
 @pytest.mark.slow
-def test_worker_processes_build_what_one_process_builds(files, tmp_path) -> None:
+def test_worker_processes_build_what_one_process_builds(
+    files, tmp_path, monkeypatch, caplog
+) -> None:
     if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
         pytest.skip("model_store/ has no trained weights")
     from catalign.features.extractor import LearnedExtractor
@@ -123,7 +125,10 @@ def test_worker_processes_build_what_one_process_builds(files, tmp_path) -> None
     for i, extents in enumerate([(0.5, 0.9, 0.5), (0.6, 0.8, 0.4), (1.2, 0.7, 0.8)]):
         files.box(f"../boxes/b{i}.ply", extents)
     one = build([sources], tmp_path / "one", extractor, progress=False, workers=1)
-    two = build([sources], tmp_path / "two", extractor, progress=False, workers=2)
+    monkeypatch.setattr("catalign.library.builder.JOBS_PER_WORKER", 1)  # processes for 3
+    with caplog.at_level(logging.INFO, logger="catalign.library.builder"):
+        two = build([sources], tmp_path / "two", extractor, progress=False, workers=2)
+    assert "2 worker(s)" in caplog.text
     assert one.ids == two.ids == ["b0", "b1", "b2"]
     for model_id in one.ids:
         a = load(tmp_path / "one", extractor.fingerprint)[model_id]

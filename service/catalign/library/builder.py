@@ -38,6 +38,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 JOURNAL_NAME = ".build-journal.jsonl"
+# Models a worker process must have to describe to be worth starting.
+JOBS_PER_WORKER = 8
 
 
 @dataclass(frozen=True)
@@ -149,7 +151,9 @@ def describe_all(
             "resuming: %d of %d entries were finished before", len(jobs) - len(todo), len(jobs)
         )
     model_dir = getattr(extractor, "model_dir", None)
-    workers = min(workers, len(todo)) if model_dir is not None else 1
+    # A worker process costs seconds to start (torch and the weights): few models stay here.
+    workers = min(workers, len(todo) // JOBS_PER_WORKER) if model_dir is not None else 1
+    workers = max(workers, 1)
     bar = tqdm(
         total=len(jobs),
         initial=len(jobs) - len(todo),
