@@ -12,10 +12,15 @@ once naming none. Per seed, mode and category it reports the views within 10 deg
 nearest pose the observed object's symmetry makes equal) and within 5 cm, both together, the
 views answered with the object's own model (top-1), and what the wrong views got wrong: another
 model, or the own model at a wrong pose (and how many of those a half or quarter turn away).
-Prints a markdown table and writes it to ``bench/results/new_categories.md``.
+Prints each wrong view, then a markdown table, and writes the table to
+``bench/results/new_categories.md``. Seeds 0 and 1 are the ones looked at, seed 2 the one
+kept aside (docs/evaluation.md, "Categories never trained on"):
 
-    .venv/bin/python bench/new_categories.py [--per-category 12] [--views 2] [--seeds 0 1 2]
-        [--model-dir model_store] [--cache .cache/bench-libraries] [--out FILE]
+    .venv/bin/python bench/new_categories.py --seeds 0 1
+    .venv/bin/python bench/new_categories.py --seeds 2 --out bench/results/new_categories-seed2.md
+
+Options: [--per-category 12] [--views 2] [--seeds 0 1 2] [--model-dir model_store]
+[--cache .cache/bench-libraries] [--out FILE].
 """
 
 from __future__ import annotations
