@@ -43,7 +43,7 @@ BACK_STYLES: tuple[str, ...] = (
 )
 
 
-class _Sampler:
+class Sampler:
     """Thin wrapper over a numpy Generator returning plain, rounded Python values."""
 
     def __init__(self, rng: np.random.Generator) -> None:
@@ -64,16 +64,16 @@ class _Sampler:
         return str(options[int(self.rng.choice(len(options), p=w))])
 
 
-def _kind_from(s: _Sampler) -> str:
+def _kind_from(s: Sampler) -> str:
     return s.pick(CHAIR_KINDS, _KIND_WEIGHTS)
 
 
 def chair_kind(seed: int) -> str:
     """Kind of the chair generated for ``seed`` (the first draw of its random stream)."""
-    return _kind_from(_Sampler(np.random.default_rng(seed)))
+    return _kind_from(Sampler(np.random.default_rng(seed)))
 
 
-def _sample_seat(s: _Sampler, width: float, depth: float, height: float, arm: bool) -> SeatParams:
+def _sample_seat(s: Sampler, width: float, depth: float, height: float, arm: bool) -> SeatParams:
     shapes, weights = ("square", "rounded", "trapezoid", "round"), (0.4, 0.3, 0.2, 0.1)
     shape = s.pick(shapes[:3], weights[:3]) if arm else s.pick(shapes, weights)
     corner = {"square": s.u(0.004, 0.02), "rounded": s.u(0.04, 0.11)}.get(shape, s.u(0.01, 0.05))
@@ -92,7 +92,7 @@ def _sample_seat(s: _Sampler, width: float, depth: float, height: float, arm: bo
 
 
 def _sample_legs(
-    s: _Sampler, seat: SeatParams, count: int = 4, thick: tuple[float, float] = (0.025, 0.05)
+    s: Sampler, seat: SeatParams, count: int = 4, thick: tuple[float, float] = (0.025, 0.05)
 ) -> LegParams:
     style = s.pick(LEG_STYLES, (0.35, 0.25, 0.2, 0.2))
     thickness = s.u(*thick)
@@ -112,7 +112,7 @@ def _sample_legs(
 
 
 def _sample_back(
-    s: _Sampler, seat: SeatParams, height_range: tuple[float, float], posts_prob: float = 0.5
+    s: Sampler, seat: SeatParams, height_range: tuple[float, float], posts_prob: float = 0.5
 ) -> BackParams:
     style = s.pick(BACK_STYLES, (0.22, 0.14, 0.18, 0.1, 0.2, 0.16))
     height = min(s.u(*height_range), 1.19 - seat.height)
@@ -132,7 +132,7 @@ def _sample_back(
     )
 
 
-def _sample_arms(s: _Sampler, styles: tuple[str, ...], weights: tuple[float, ...]) -> ArmParams:
+def _sample_arms(s: Sampler, styles: tuple[str, ...], weights: tuple[float, ...]) -> ArmParams:
     return ArmParams(
         style=s.pick(styles, weights),
         height=s.u(0.17, 0.27),
@@ -142,7 +142,7 @@ def _sample_arms(s: _Sampler, styles: tuple[str, ...], weights: tuple[float, ...
     )
 
 
-def _sample_chair(s: _Sampler, seed: int, kind: str) -> ChairParams:
+def _sample_chair(s: Sampler, seed: int, kind: str) -> ChairParams:
     arm = kind == "armchair"
     width = s.u(0.45, 0.62) if arm else s.u(0.38, 0.52)
     seat = _sample_seat(s, width, s.u(0.38, 0.52), s.u(0.40, 0.50), arm)
@@ -170,7 +170,7 @@ def _sample_chair(s: _Sampler, seed: int, kind: str) -> ChairParams:
     return ChairParams(seed, kind, seat, legs=legs, back=back, arms=arms)
 
 
-def _sample_office(s: _Sampler, seed: int) -> ChairParams:
+def _sample_office(s: Sampler, seed: int) -> ChairParams:
     seat = SeatParams(
         width=s.u(0.45, 0.55),
         depth=s.u(0.42, 0.52),
@@ -210,7 +210,7 @@ def _sample_office(s: _Sampler, seed: int) -> ChairParams:
     return ChairParams(seed, "office", seat, back=back, arms=arms, office=office)
 
 
-def _sample_stool(s: _Sampler, seed: int) -> ChairParams:
+def _sample_stool(s: Sampler, seed: int) -> ChairParams:
     round_seat = s.p(0.65)
     size = s.u(0.28, 0.40)
     height = s.u(0.45, 0.56) if s.p(0.5) else s.u(0.6, 0.78)
@@ -241,7 +241,7 @@ def _sample_stool(s: _Sampler, seed: int) -> ChairParams:
     return ChairParams(seed, "stool", seat, legs=legs)
 
 
-def _sample_bench(s: _Sampler, seed: int) -> ChairParams:
+def _sample_bench(s: Sampler, seed: int) -> ChairParams:
     width = s.u(0.8, 1.4)
     seat = SeatParams(
         width=width,
@@ -274,7 +274,7 @@ def _sample_bench(s: _Sampler, seed: int) -> ChairParams:
     return ChairParams(seed, "bench", seat, legs=legs, back=back, arms=arms)
 
 
-def _sample_sofa(s: _Sampler, seed: int) -> ChairParams:
+def _sample_sofa(s: Sampler, seed: int) -> ChairParams:
     arm_w = s.u(0.08, 0.22)
     n_seats = int(s.pick(("1", "2", "3"), (0.6, 0.3, 0.1)))
     per_seat = s.u(0.48, 0.62) if n_seats == 1 else s.u(0.42, 0.55)
@@ -321,7 +321,7 @@ def _sample_sofa(s: _Sampler, seed: int) -> ChairParams:
 
 def sample_chair_params(seed: int) -> ChairParams:
     """Sample every parameter of the chair for ``seed`` (deterministic)."""
-    s = _Sampler(np.random.default_rng(seed))
+    s = Sampler(np.random.default_rng(seed))
     kind = _kind_from(s)
     if kind in ("chair", "armchair"):
         return _sample_chair(s, seed, kind)
@@ -341,7 +341,12 @@ def build_chair_parts(params: ChairParams) -> list[trimesh.Trimesh]:
 
 def build_chair(params: ChairParams, center: bool = True) -> trimesh.Trimesh:
     """Concatenate the parts into one mesh; ``center`` moves the bounding-box centre to 0."""
-    part_list = build_chair_parts(params)
+    return assemble(build_chair_parts(params), center)
+
+
+def assemble(part_list: list[trimesh.Trimesh], center: bool = True) -> trimesh.Trimesh:
+    """One mesh of closed parts (each stays closed: no vertex is merged); ``center`` moves the
+    bounding-box centre to 0."""
     offsets = np.cumsum([0] + [len(p.vertices) for p in part_list[:-1]])
     verts = np.vstack([p.vertices for p in part_list])
     faces = np.vstack([p.faces + o for p, o in zip(part_list, offsets, strict=True)])
