@@ -32,6 +32,7 @@ p50/p99 per block to ``--figure`` (default ``docs/soak.png``).
     .venv/bin/python bench/soak.py [--requests 20000] [--concurrency 4] [--block 1000]
         [--change-every 500] [--points 20000] [--views 8] [--workers 2] [--library DIR]
         [--out bench/results/soak.md] [--rows bench/results/soak.json] [--figure docs/soak.png]
+    .venv/bin/python bench/soak.py --redraw [--rows bench/results/soak.json] [--figure FILE]
 """
 
 from __future__ import annotations
@@ -299,27 +300,33 @@ def draw(rows: list[Row], path: Path, title: str) -> None:
     band = rows[0].rss_mib * (1 + TARGETS["rss"])
     memory.axhline(band, color="grey", linestyle="--", linewidth=1, label="first block + 5 %")
     memory.set_ylabel("resident MiB")
-    memory.set_ylim(bottom=0)
-    memory.legend(fontsize=8, loc="lower right")
+    memory.set_ylim(0, max(band, *(r.rss_mib for r in rows)) * 1.1)
+    memory.legend(fontsize=8, loc="lower center", ncol=4)
     fds.plot(x, [r.fds for r in rows], marker="o", label="open descriptors")
     fds.plot(x, [r.threads for r in rows], marker=".", label="threads")
     fds.set_ylabel("count")
-    fds.set_ylim(bottom=0)
-    fds.legend(fontsize=8, loc="lower right")
+    fds.set_ylim(0, max(r.fds for r in rows) * 1.3)
+    fds.legend(fontsize=8, loc="center right")
     latency.plot(x, [r.p50_ms for r in rows], marker="o", label="p50")
     latency.plot(x, [r.p99_ms for r in rows], marker="o", label="p99")
-    if len(rows) > 1:
-        limit = rows[1].p99_ms * TARGETS["p99"]
+    limit = rows[1].p99_ms * TARGETS["p99"] if len(rows) > 1 else 0.0
+    if limit:
         latency.axhline(limit, color="grey", linestyle="--", linewidth=1, label="1.2x second p99")
     latency.set_ylabel("end-to-end ms")
     latency.set_xlabel("registrations answered (thousands)")
-    latency.set_ylim(bottom=0)
-    latency.legend(fontsize=8, loc="lower right")
+    latency.set_ylim(0, max(limit, *(r.p99_ms for r in rows)) * 1.15)
+    latency.legend(fontsize=8, loc="lower center", ncol=3)
     memory.set_title(title, fontsize=9)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)
     plt.close(figure)
+
+
+def shown(path: Path) -> str:
+    """``path`` relative to the repository when it lies in it (the report names no machine)."""
+    path = path.resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
 
 
 def report(args: argparse.Namespace, rows: list[Row], changes: list[dict], notes: dict) -> str:
@@ -332,7 +339,7 @@ def report(args: argparse.Namespace, rows: list[Row], changes: list[dict], notes
         "",
         f"{platform.machine()} {_cpu_model()}, {os.cpu_count()} CPUs; one `catalign serve` "
         f"({args.workers} worker processes of 1 thread, queue {QUEUE}, deadline "
-        f"{DEADLINE_S:.0f} s) on a copy of `{args.library}` ({notes['models']} models); "
+        f"{DEADLINE_S:.0f} s) on a copy of `{shown(args.library)}` ({notes['models']} models); "
         f"{args.concurrency} client threads sharing one SDK `Client` (binary, no retries), "
         f"{len(notes['views'])} views of {args.points} points (chairs {notes['views']}) in turn, "
         f"up=+Z, seed=0; a library change (add a chair as a PLY mesh, remove the one added "
@@ -381,7 +388,14 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--rows", type=Path, default=ROWS)
     parser.add_argument("--figure", type=Path, default=FIGURE)
+    parser.add_argument(
+        "--redraw", action="store_true", help="only draw --figure again from the --rows file"
+    )
     args = parser.parse_args()
+    if args.redraw:
+        saved = json.loads(args.rows.read_text())
+        draw([Row(**row) for row in saved["rows"]], args.figure, saved["title"])
+        return
     if not 1 <= args.views <= len(VIEW_SEEDS):
         parser.error(f"--views must be 1 to {len(VIEW_SEEDS)}")
     if min(args.requests, args.concurrency, args.block, args.change_every) < 1:
@@ -436,9 +450,12 @@ def main() -> None:
     publish(report(args, soak.rows, changes, notes), args.out)
     args.rows.parent.mkdir(parents=True, exist_ok=True)
     rows = [asdict(r) for r in soak.rows]
+    title = (
+        f"soak: {args.requests} registrations at concurrency {args.concurrency}, "
+        f"a library change every {args.change_every}"
+    )
     payload = {"rows": rows, "changes": changes, "verdict": verdict(soak.rows), **notes}
-    args.rows.write_text(json.dumps(payload, indent=1) + "\n")
-    title = f"soak: {args.requests} registrations at concurrency {args.concurrency}"
+    args.rows.write_text(json.dumps({"title": title, **payload}, indent=1) + "\n")
     draw(soak.rows, args.figure, title)
 
 
