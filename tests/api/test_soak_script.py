@@ -1,6 +1,6 @@
 """``bench/soak.py`` on a tiny count: it runs a real server, changes the library, writes rows.
 
-The full soak (20,000 registrations) takes over an hour on 2 cores; this runs 40 small ones on one
+The full soak (20,000 registrations) takes half an hour on 2 cores; this runs 40 small ones on one
 worker process with 2 library changes, so that the script itself stays working.
 """
 
