@@ -134,7 +134,8 @@ def free_port() -> int:
 class ServerProcess:
     """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file.
     ``mode``: its workers are ``processes`` (one engine each) or ``threads`` (one engine);
-    ``library``: the library it serves."""
+    ``library``: the library it serves; ``deadline_s``: each request's deadline (by default as
+    long as the client's timeout, so that no request is cut off)."""
 
     def __init__(
         self,
@@ -143,6 +144,7 @@ class ServerProcess:
         mode: str,
         threads_per_worker: int,
         library: Path = LIBRARY,
+        deadline_s: float = REQUEST_TIMEOUT_S,
     ) -> None:
         self.port = free_port()
         self.grpc_port = free_port()
@@ -160,7 +162,7 @@ class ServerProcess:
         env["CATALIGN_WORKER_PROCESSES"] = "true" if mode == "processes" else "false"
         env["CATALIGN_THREADS_PER_WORKER"] = str(threads_per_worker)
         # Every request must finish: a deadline would turn slow (oversubscribed) runs into 503s.
-        env["CATALIGN_DEADLINE_S"] = str(REQUEST_TIMEOUT_S)
+        env["CATALIGN_DEADLINE_S"] = str(deadline_s)
         env["CATALIGN_LOG_LEVEL"] = "warning"  # no line per request in the timed loop
         flags = {
             "--model-dir": MODEL_DIR,

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from catalign.api import service as service_module
 from catalign.api.service import RegistrationService
 from catalign.data.shapes import procedural_shape
 from catalign.library.index import remove
@@ -126,6 +127,25 @@ def test_a_change_on_disk_is_loaded_once(
         for _ in range(3):
             assert http.get("/models").json()["count"] == 2
     assert loads == [library_copy]
+
+
+def test_every_library_change_hands_freed_memory_back(
+    serve: Callable, library_copy: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A change through the API and one made on disk by another process each end with
+    ``malloc_trim``: the old library's engine is freed, and glibc would keep its pages (the
+    server's resident memory would creep up with library versions)."""
+    trims: list[int] = []
+    monkeypatch.setattr(service_module, "release_free_memory", lambda: trims.append(1) or True)
+    with (
+        serve(library=library_copy, warmup=False, workers=1, worker_processes=False) as server,
+        httpx.Client(base_url=server.url, timeout=60) as http,
+    ):
+        assert http.delete("/models/proc-0002").status_code == 200
+        assert len(trims) == 1
+        remove(library_copy, ["proc-0001"])  # as `catalign library remove` would
+        assert http.get("/models").json()["count"] == 1
+        assert len(trims) == 2
 
 
 def test_a_models_points_come_as_float32_thinned_to_the_limit(

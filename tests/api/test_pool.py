@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import platform
 import threading
 import time
 from functools import partial
@@ -14,7 +16,7 @@ from catalign.api.metrics import Metrics
 from catalign.api.pool import WorkPool
 from catalign.deadline import Deadline
 from catalign.errors import DeadlineExceededError
-from catalign.threads import limit_threads
+from catalign.threads import limit_threads, release_free_memory
 
 
 def test_admission_is_bounded_and_slots_come_back() -> None:
@@ -166,3 +168,20 @@ def test_workers_run_with_the_thread_limits_of_their_share() -> None:
         torch.set_num_threads(saved[0])
         threadpool_limits(limits={pool["prefix"]: pool["num_threads"] for pool in saved[1]})
         open3d.utility.set_max_threads(saved[2])
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="malloc_trim is glibc's")
+def test_memory_freed_inside_the_heap_goes_back_to_the_system() -> None:
+    """Freed blocks below one still in use stay resident until ``release_free_memory``."""
+
+    def resident() -> int:
+        with open("/proc/self/statm") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    blocks = [bytearray(64 * 1024) for _ in range(1024)]  # 64 MiB from the heap, written
+    kept = blocks[-1]  # the last keeps the heap's top in use: free() cannot give the rest back
+    del blocks
+    before = resident()
+    assert release_free_memory() is True
+    assert before - resident() > 32 * 2**20
+    assert len(kept) == 64 * 1024

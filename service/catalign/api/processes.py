@@ -11,7 +11,7 @@ thread always finds one idle.
 
 * **Library changes**: every job carries the stamp of the library the server serves; a process
   whose library is older loads it from disk first (entries are immutable files, so this is the
-  same load as the server's own).
+  same load as the server's own), then hands the memory the old engine held back to the system.
 * **Deadlines**: a job carries its time left, and its :class:`~catalign.deadline.Deadline`'s
   cancellation (the client went away) reaches the process through a shared event, which the
   engine checks between its stages as it checks its own clock.
@@ -180,7 +180,7 @@ def serve(
     (None) or until the server's end of the pipe closes."""
     from catalign.features.extractor import LearnedExtractor
     from catalign.library.loaded import load
-    from catalign.threads import limit_malloc_arenas, limit_threads
+    from catalign.threads import limit_malloc_arenas, limit_threads, release_free_memory
 
     try:
         limit_malloc_arenas(2)
@@ -206,6 +206,7 @@ def serve(
                 stamp = job.library_stamp
                 library = load(settings.library, extractor.fingerprint)
                 engine = served_engine(extractor, library, settings)
+                release_free_memory()  # what the old engine's caches held
             result = engine.register(
                 job.points, **job.options, deadline=_Shared(job.seconds, cancelled)
             )

@@ -40,7 +40,7 @@ from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError
 from catalign.library.store import manifest_stamp
 from catalign.registration.config import served_config
-from catalign.threads import limit_threads
+from catalign.threads import limit_threads, release_free_memory
 
 if TYPE_CHECKING:
     from catalign.features.extractor import LearnedExtractor
@@ -208,6 +208,7 @@ class RegistrationService:
             self._served = self._serve(extractor, library)
             self.metrics.library_models.set(len(library))
             logger.info("library changed on disk: now %d models", len(library))
+            await asyncio.to_thread(release_free_memory)  # what the old library's engine held
 
     def info(self) -> InfoResponse:
         import open3d
@@ -295,6 +296,7 @@ class RegistrationService:
             self._stamp = manifest_stamp(self.settings.library)
             self._served = self._serve(extractor, library)
             self.metrics.library_models.set(len(library))
+            await asyncio.to_thread(release_free_memory)  # what the change and old engine freed
             return library
 
     # worker-side ------------------------------------------------------------------------------
