@@ -46,7 +46,13 @@ def evaluate(
     setting: Annotated[
         list[str] | None, typer.Option(help="same and/or cross (repeat the option); both if unset.")
     ] = None,
-    views: Annotated[int, typer.Option(min=1, help="Views per validation shape.")] = 2,
+    views: Annotated[
+        str,
+        typer.Option(
+            help="Views of each validation shape: single or fused (a reconstruction fused from a "
+            "camera trajectory), with :N views per shape (fused:4); a bare N is N single views.",
+        ),
+    ] = "single:2",
     max_shapes: Annotated[
         int | None,
         typer.Option(min=1, help="Cap on observed shapes and on each library (quick runs)."),
@@ -104,7 +110,7 @@ def evaluate(
 ) -> None:
     """Run a registration method on the validation split and print the paper's table."""
     from catalign.data.shapes import shared_shapes
-    from catalign.evaluation.protocol import VIEW_MODES
+    from catalign.evaluation.protocol import VIEW_MODES, parse_views
     from catalign.evaluation.runner import EvaluationConfig, evaluate, write_report
     from catalign.registration.config import parse_options
     from catalign.registration.methods import check_method
@@ -120,13 +126,15 @@ def evaluate(
             raise ConfigError(f"unknown category {category!r}; the shared shapes are chair, table")
         if pose_mode not in VIEW_MODES:
             raise ConfigError(f"unknown pose mode {pose_mode!r}; use upright, so3 or turned")
+        view_source, views_per_shape = parse_views(views)
         up_given = (pose_mode == "upright") if up_prior is None else up_prior
         if up_error and not up_given:
             raise ConfigError("--up-error tilts the up the method is told: it needs --up-prior")
         config = EvaluationConfig(
             method=method,
             settings=settings,  # type: ignore[arg-type]
-            views=views,
+            views=views_per_shape,
+            source=view_source,
             max_shapes=max_shapes,
             seed=seed,
             pose_mode=pose_mode,  # type: ignore[arg-type]
@@ -142,6 +150,7 @@ def evaluate(
         report = evaluate(config, source)
     prior = ("" if config.up_prior else "-no-up") + (f"-up-error{up_error:g}" if up_error else "")
     kept = ("-floor" if floor else "") + ("-table" if table else "")
+    kept += "-fused" if view_source == "fused" else ""
     of = "" if category == "chair" else f"-{category}"
     path = out or Path("results") / f"evaluate-{method}{of}-{pose_mode}{prior}{kept}.json"
     write_report(report, path)

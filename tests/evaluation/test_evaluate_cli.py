@@ -5,11 +5,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
-from catalign.evaluation.protocol import build_cases
+from catalign.evaluation.protocol import build_cases, parse_views
 from catalign.evaluation.report import COLUMNS
 from catalign.evaluation.runner import given_up
 from catalign.geometry.se3 import transform
@@ -270,3 +271,57 @@ def test_the_up_told_is_tilted_by_the_up_error():
         up = given_up(error)
         assert np.isclose(np.linalg.norm(up), 1.0)
         assert np.isclose(np.degrees(np.arccos(up @ np.array([0.0, 0.0, 1.0]))), error, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("text", "parsed"),
+    [
+        ("4", ("single", 4)),
+        ("single", ("single", 2)),
+        ("fused", ("fused", 2)),
+        ("fused:3", ("fused", 3)),
+    ],
+)
+def test_views_name_their_source_and_count(text: str, parsed: tuple[str, int]):
+    assert parse_views(text) == parsed
+
+
+@pytest.mark.parametrize("text", ["0", "fused:0", "fused:x", "depth", "single:-1"])
+def test_views_the_evaluation_cannot_make_exit_2_with_what_it_takes(text: str):
+    result = runner.invoke(app, ["evaluate", "--views", text])
+    assert result.exit_code == 2
+    assert "--views" in result.stderr and (
+        "single, fused" in result.stderr or ">= 1" in result.stderr
+    )
+
+
+def test_fused_cases_are_reconstructions_of_the_standing_shape_and_turn_like_single_ones():
+    shapes = {"p3": procedural_shape(3)}
+    fused = build_cases(shapes, views=2, seed=5, source="fused")
+    again = build_cases(shapes, views=2, seed=5, source="fused")
+    single = build_cases(shapes, views=2, seed=5)
+    for case, twin, one in zip(fused, again, single, strict=True):
+        np.testing.assert_array_equal(case.points, twin.points)  # the seed fixes everything
+        np.testing.assert_allclose(case.pose[:3, :3] @ [0, 1, 0], [0, 0, 1], atol=1e-9)
+        posed = transform(shapes["p3"].points, case.pose)
+        on_chair = cKDTree(posed).query(case.points)[0] < 0.03
+        assert on_chair.mean() > 0.5
+        # A reconstruction covers more of the chair than one depth frame does.
+        covered = cKDTree(case.points).query(posed)[0] < 0.02
+        seen_once = cKDTree(one.points).query(posed)[0] < 0.02
+        assert covered.mean() > seen_once.mean()
+    turned = build_cases(shapes, views=2, seed=5, source="fused", pose_mode="so3")
+    for case, upright in zip(turned, fused, strict=True):
+        turn = case.pose @ np.linalg.inv(upright.pose)
+        np.testing.assert_allclose(transform(upright.points, turn), case.points, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_evaluate_on_fused_views_records_the_source(chairs_root: Path, tmp_path: Path):
+    out = tmp_path / "fused.json"
+    args = ["evaluate", "--views", "fused:1", "--max-shapes", "1", "--setting", "same"]
+    result = runner.invoke(app, [*args, "--chairs-dir", str(chairs_root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(out.read_text())
+    assert report["config"]["source"] == "fused" and report["config"]["views"] == 1
+    assert [row["cases"] for row in report["rows"]] == [1]

@@ -21,6 +21,12 @@ lies beneath it (:func:`~catalign.data.views.under_table`). Either way the chair
 upright, so ``so3`` with a floor or a table is ``turned``. Everything derives from ``seed``, so
 two runs see the same cases, and a view with a table is its twin without one, less the points
 the table hides (when neither is capped at ``max_points``).
+
+Views come from one of two sources (:data:`VIEW_SOURCES`): ``single``, one depth camera's
+frame as above, or ``fused``, a reconstruction fused from a camera trajectory around the
+standing object and cut out loosely (:func:`~catalign.data.reconstruction.reconstruct`: drift,
+holes where no camera looked, some floor in half of them, a bit of a neighbour); a fused object
+stands upright, so ``so3`` is ``turned``, and ``floor`` keeps the floor in every cut.
 """
 
 from __future__ import annotations
@@ -34,9 +40,10 @@ import numpy as np
 from tqdm import tqdm
 
 from catalign.data.camera import random_camera
+from catalign.data.reconstruction import Reconstruction, reconstruct
 from catalign.data.shapes import Shape, SharedChairs
 from catalign.data.views import Floor, PoseMode, random_object_pose, render_view, under_table
-from catalign.errors import DegenerateInputError, InvalidInputError
+from catalign.errors import ConfigError, DegenerateInputError, InvalidInputError
 from catalign.frames import MODEL_UP
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.sampling import subsample
@@ -48,6 +55,8 @@ Setting = Literal["same", "cross"]
 SETTINGS: tuple[Setting, ...] = ("same", "cross")
 ViewMode = Literal["upright", "so3", "turned"]
 VIEW_MODES: tuple[ViewMode, ...] = ("upright", "so3", "turned")
+ViewSource = Literal["single", "fused"]
+VIEW_SOURCES: tuple[ViewSource, ...] = ("single", "fused")
 
 
 @dataclass(frozen=True)
@@ -86,6 +95,22 @@ def metric_shapes(shapes: SharedChairs, ids: Sequence[str]) -> dict[str, Shape]:
     return {i: shapes.metric(i) for i in ids}
 
 
+def parse_views(text: str) -> tuple[ViewSource, int]:
+    """``--views`` as a user writes it: ``single`` or ``fused``, optionally with ``:N`` views
+    per shape (2 by default), or a bare ``N`` (N single views)."""
+    source, _, count = text.strip().partition(":")
+    if source.isdigit() and not count:
+        source, count = "single", source
+    if source not in VIEW_SOURCES:
+        raise ConfigError(
+            f"--views {text!r}: expected single, fused, either with :N views per shape "
+            "(fused:4), or a number of single views"
+        )
+    if count and not (count.isdigit() and int(count) >= 1):
+        raise ConfigError(f"--views {text!r}: the views per shape must be a whole number >= 1")
+    return source, int(count or 2)  # type: ignore[return-value]
+
+
 def build_cases(
     shapes: dict[str, Shape],
     views: int,
@@ -94,6 +119,7 @@ def build_cases(
     max_points: int = 20_000,
     floor: bool = False,
     table: bool = False,
+    source: ViewSource = "single",
 ) -> list[TestCase]:
     """``views`` noisy partial observations of every shape, all derived from ``seed``.
 
@@ -105,22 +131,31 @@ def build_cases(
     """
     if pose_mode not in VIEW_MODES:
         raise ValueError(f"unknown view mode {pose_mode!r}; expected one of {VIEW_MODES}")
+    if source not in VIEW_SOURCES:
+        raise ValueError(f"unknown view source {source!r}; expected one of {VIEW_SOURCES}")
+    fused = source == "fused"
     floor_kept = Floor() if floor else None
-    turned = pose_mode == "turned" or ((floor or table) and pose_mode == "so3")
+    standing = floor or table or fused
+    turned = pose_mode == "turned" or (standing and pose_mode == "so3")
     placed: PoseMode = "upright" if turned else pose_mode
     cases = []
     for index, (shape_id, shape) in enumerate(sorted(shapes.items())):
         for view in range(views):
             rng = np.random.default_rng([seed, index, view])
             pose = random_object_pose(rng, placed, height=shape.height / 2)
-            camera = random_camera(pose[:3, 3], rng)
-            seen = render_view(shape, pose, camera, rng, floor=floor_kept)
+            if fused:
+                reconstruction = Reconstruction(floor_kept=1.0) if floor else Reconstruction()
+                made = reconstruct(shape, pose, rng, reconstruction)
+                seen, eye = made.points, made.eyes[0]
+            else:
+                camera = random_camera(pose[:3, 3], rng)
+                seen, eye = render_view(shape, pose, camera, rng, floor=floor_kept), camera.eye
             if table:
                 hidden = under_table(
                     seen, pose[:3, 3], np.random.default_rng([seed, index, view, 1])
                 )
                 seen = seen[~hidden]
-            points, eye = subsample(seen, max_points, rng), camera.eye
+            points = subsample(seen, max_points, rng)
             if turned:
                 turn = make_pose(random_rotation(rng), np.zeros(3))
                 points, pose, eye = transform(points, turn), turn @ pose, turn[:3, :3] @ eye

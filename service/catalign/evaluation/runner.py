@@ -18,6 +18,7 @@ from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import (
     Setting,
     ViewMode,
+    ViewSource,
     build_cases,
     frames_of,
     metric_shapes,
@@ -37,6 +38,7 @@ class EvaluationConfig:
     method: str = "fpfh"
     settings: tuple[Setting, ...] = ("same", "cross")
     views: int = 2
+    source: ViewSource = "single"
     max_shapes: int | None = None
     seed: int = 0
     pose_mode: ViewMode = "upright"
@@ -60,7 +62,8 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
     +Z is up (true of upright observations; in ``so3`` and ``turned`` modes it is a wrong
     prior), tilted by ``up_error_deg`` (:func:`given_up`). ``floor`` keeps a ring of floor
     around every observed chair (the scene turned at random in so3); ``table`` pushes it under
-    a table that hides what lies beneath its top.
+    a table that hides what lies beneath its top. ``source`` is ``single`` (one depth frame per
+    view) or ``fused`` (a reconstruction; see :mod:`catalign.evaluation.protocol`).
     """
     up = given_up(config.up_error_deg) if config.up_prior else None
     registrar = build_registrar(config.method, config.model_dir, up, config.engine)
@@ -74,6 +77,7 @@ def evaluate(config: EvaluationConfig, chairs: SharedChairs) -> dict[str, Any]:
         config.pose_mode,
         floor=config.floor,
         table=config.table,
+        source=config.source,
     )
     libraries = {"same": observed, "cross": metric_shapes(chairs, train_ids)}
     symmetries = symmetries_of(observed)
