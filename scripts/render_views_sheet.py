@@ -53,7 +53,7 @@ def main() -> None:
             _draw(axis, points, pose, f"{name}: {title} ({len(points):,} points)")
     figure.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=90)
+    figure.savefig(args.out, dpi=70)
     print(f"wrote {args.out}")
 
 

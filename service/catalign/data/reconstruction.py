@@ -3,7 +3,8 @@ robot sends it (TSDF or surfel mapping, as ScanNet's scans were made).
 
 A reconstruction is made in four steps (:func:`reconstruct`):
 
-1. the scene: the shape placed upright on a floor (a large horizontal square at its lowest
+1. the scene: the shape (its mesh, or the alpha mesh of its points: :func:`alpha_mesh`) placed
+   upright on a floor (a large horizontal square at its lowest
    point), with a box beside it as a neighbour and, optionally, a wall behind it;
 2. a camera trajectory (:func:`trajectory`): ``frames`` cameras on an arc of ``coverage_deg``
    degrees of azimuth around the object, distance and elevation wandering smoothly within their
@@ -32,8 +33,6 @@ from catalign.geometry.se3 import axis_angle, make_pose, transform
 
 # The floor and wall are squares this many metres wide: larger than any camera's view of them.
 _PLANE_SIZE = 8.0
-# A square's corners, in order around it.
-_CORNERS = ((-1, -1), (1, -1), (1, 1), (-1, 1))
 # Room for the voxel blocks (8 voxels a side) of the map around one object.
 _BLOCKS = 20_000
 
@@ -87,28 +86,21 @@ class Fused:
     object_points: int
 
 
-def surfel_mesh(
-    points: np.ndarray, rng: np.random.Generator, neighbours: int = 6
-) -> tuple[np.ndarray, np.ndarray]:
-    """A mesh a camera can see for a point-only shape: every point becomes a small square
-    (two triangles) across its estimated normal, reaching as far as its ``neighbours``-th
-    nearest neighbour, so the squares overlap and no ray slips between them to the far side.
-    Each square is turned at random about its normal, so no grain runs through the surface."""
+def alpha_mesh(points: np.ndarray, spacings: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh a camera can see for a point-only shape: the boundary of its alpha shape, with
+    alpha ``spacings`` times the median distance between neighbouring points. Its triangles join
+    sample points only, so thin parts stay thin; at 3 spacings it leaves holes (a camera sees
+    50 to 80 % of the pixels the CAD mesh covers; 97 % at 10 spacings) yet fused views of it
+    are retrieved nearly as often as the CAD mesh's (``bench/fused_proxy.py``: 19 of 20 at 3
+    spacings, 15 at 6, 17 at 10; CAD 20). Squares across each point's normal, wide enough to
+    leave no holes, swelled legs and edges: 13 of 20."""
     import open3d as o3d
     from scipy.spatial import cKDTree
 
+    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
-    normals = np.asarray(cloud.normals)
-    half = cKDTree(points).query(points, k=neighbours + 1)[0][:, -1:]
-    first = np.cross(normals, rng.normal(size=points.shape))
-    first /= np.linalg.norm(first, axis=1, keepdims=True)
-    second = np.cross(normals, first)
-    corners = [points + half * (a * first + b * second) for a, b in _CORNERS]
-    vertices = np.stack(corners, axis=1).reshape(-1, 3)
-    base = 4 * np.arange(len(points))[:, None]
-    faces = np.vstack([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])])
-    return vertices, faces
+    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(cloud, spacings * spacing)
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
 
 
 def trajectory(
@@ -277,7 +269,7 @@ def reconstruct(
 
     config = config or Reconstruction()
     if shape.mesh is None:
-        vertices, faces = surfel_mesh(transform(shape.points, pose), rng)
+        vertices, faces = alpha_mesh(transform(shape.points, pose))
     else:
         vertices, faces = transform(shape.mesh.vertices, pose), shape.mesh.faces
     low, high = vertices.min(axis=0), vertices.max(axis=0)
