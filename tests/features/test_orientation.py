@@ -126,8 +126,8 @@ def test_a_tiny_training_run_ships_a_working_proposer(tmp_path: Path, up_frame: 
 
 
 def test_fused_views_see_more_of_the_chair_than_single_ones() -> None:
-    """A fused view is the union of several cameras' views of one placed chair: it spans more
-    of the chair than one camera does, at the same pose."""
+    """A fused view is a reconstruction of the placed chair from a camera trajectory: it spans
+    more of the chair than one camera does, at the same pose."""
     shapes = [procedural_shape(0)]
     options = {"view_points": 4096, "so3_share": 0.0, "floor_share": 0.0, "progress": False}
     single = render_views(shapes, 6, seed=3, **options)

@@ -236,7 +236,10 @@ def train_orientation(
         ),
     ] = ORIENTATION.networks,
     fused_share: Annotated[
-        float, typer.Option(help="Share of views fused from 2 to 4 cameras (a reconstruction).")
+        float,
+        typer.Option(
+            help="Share of views that are reconstructions fused along a camera trajectory."
+        ),
     ] = ORIENTATION.fused_share,
     so3_share: Annotated[
         float, typer.Option(help="Share of views rendered in any rotation (the rest upright).")

@@ -89,7 +89,10 @@ class OrientationConfig(BaseModel):
     so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
     floor_share: float = Field(0.25, ge=0, le=1, description="upright views with floor kept")
     fused_share: float = Field(
-        0.0, ge=0, le=1, description="views fused from 2 to 4 cameras, as a reconstruction is"
+        0.0,
+        ge=0,
+        le=1,
+        description="views that are reconstructions fused along a camera trajectory",
     )
     tilt_deg: float = Field(10.0, ge=0, description="error of the up the heading net is given")
     label_sigma_deg: float = Field(10.0, gt=0)

@@ -34,6 +34,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from catalign.data.camera import random_camera
+from catalign.data.reconstruction import reconstruct
 from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
 from catalign.data.views import Floor, random_object_pose, render_view
 from catalign.errors import ConfigError
@@ -91,8 +92,9 @@ def render_views(
 ) -> ViewSet:
     """``views_per_shape`` noisy partial views of each metric shape, as the evaluation makes
     them (an upright share, some with floor, the rest in any rotation); a ``fused_share`` of
-    them is the union of 2 to 4 cameras' views, as a scan fused from a moving sensor is (a
-    ScanNet chair is seen from most sides, a single depth image from one)."""
+    them are reconstructions (:func:`~catalign.data.reconstruction.reconstruct`: fused from a
+    camera trajectory, cut out loosely), as a mapping robot sends them (a ScanNet chair is seen
+    from most sides, a single depth image from one)."""
     points, counts, rotations = [], [], []
     jobs = [(s, v) for s in range(len(shapes)) for v in range(views_per_shape)]
     for s, v in tqdm(jobs, desc="render views", unit="view", disable=not progress):
@@ -101,13 +103,10 @@ def render_views(
         mode = "so3" if rng.random() < so3_share else "upright"
         pose = random_object_pose(rng, mode, height=shape.height / 2)
         floor = Floor() if mode == "upright" and rng.random() < floor_share else None
-        cameras = int(rng.integers(2, 5)) if fused_share and rng.random() < fused_share else 1
-        seen = np.vstack(
-            [
-                render_view(shape, pose, random_camera(pose[:3, 3], rng), rng, floor=floor)
-                for _ in range(cameras)
-            ]
-        )
+        if fused_share and rng.random() < fused_share:
+            seen = reconstruct(shape, pose, rng).points
+        else:
+            seen = render_view(shape, pose, random_camera(pose[:3, 3], rng), rng, floor=floor)
         if len(seen) < 16:
             continue
         order = rng.permutation(len(seen))[:view_points]
