@@ -99,7 +99,11 @@ def alpha_mesh(points: np.ndarray, spacings: float = 3.0) -> tuple[np.ndarray, n
 
     spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(cloud, spacings * spacing)
+    # Open3D warns of every degenerate tetrahedron it skips: thousands of lines per shape.
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(
+            cloud, spacings * spacing
+        )
     return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
 
 
