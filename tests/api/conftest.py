@@ -32,6 +32,8 @@ from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import render_view, upright_rotation
 from catalign.geometry.se3 import make_pose
+from catalign.paths import DEFAULT_MODEL_DIR
+from catalign_client import Client
 
 LIBRARY_SEEDS = 3  # proc-0000, proc-0001, proc-0002
 START_TIMEOUT_S = 180.0
@@ -83,6 +85,15 @@ def library_copy(library_dir: Path, tmp_path: Path) -> Path:
 def serve(model_dir: Path) -> Callable[..., AbstractContextManager[Server]]:
     """``with serve(library=..., grpc=True, **settings) as server:`` runs a server."""
     return partial(run_server, model_dir=model_dir)
+
+
+@pytest.fixture(scope="module")
+def shipped_client(serve: Callable) -> Iterator[Client]:
+    """The SDK on a server of the shipped model and the default library, as a user starts
+    it, for one test module."""
+    library = Path(DEFAULT_MODEL_DIR) / "library"
+    with serve(library=library, warmup=False) as server, Client(server.url, timeout=120) as sdk:
+        yield sdk
 
 
 @pytest.fixture(scope="session")

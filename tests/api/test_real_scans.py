@@ -15,7 +15,6 @@ confidence is low enough for a caller's ``min_confidence`` to refuse them.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,18 +44,12 @@ def scans() -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def client(serve: Callable) -> Iterator[Client]:
-    """The SDK on a server of the shipped model and the default library."""
-    library = Path(DEFAULT_MODEL_DIR) / "library"
-    with serve(library=library, warmup=False) as server, Client(server.url, timeout=120) as sdk:
-        yield sdk
-
-
-@pytest.fixture(scope="module")
-def answers(client: Client, scans: dict[str, np.ndarray]) -> dict[tuple[str, bool], AlignResult]:
+def answers(
+    shipped_client: Client, scans: dict[str, np.ndarray]
+) -> dict[tuple[str, bool], AlignResult]:
     """Every scan aligned with ``up`` = +Z and without ``up``."""
     return {
-        (name, with_up): client.align(points, up=(0, 0, 1) if with_up else None, seed=0)
+        (name, with_up): shipped_client.align(points, up=(0, 0, 1) if with_up else None, seed=0)
         for name, points in scans.items()
         for with_up in (True, False)
     }
@@ -106,14 +99,14 @@ def test_the_four_copies_of_one_chair_get_one_model(
 
 @pytest.mark.parametrize("with_up", [True, False], ids=["up", "no-up"])
 def test_a_moved_scan_gets_the_motion_back_in_its_pose(
-    client: Client,
+    shipped_client: Client,
     answers: dict[tuple[str, bool], AlignResult],
     scans: dict[str, np.ndarray],
     with_up: bool,
 ) -> None:
     up = tuple(MOTION[:3, :3] @ WORLD_UP) if with_up else None
     for name, points in scans.items():
-        result = client.align(points @ MOTION[:3, :3].T + MOTION[:3, 3], up=up, seed=0)
+        result = shipped_client.align(points @ MOTION[:3, :3].T + MOTION[:3, 3], up=up, seed=0)
         before = answers[name, with_up]
         assert result.model_id == before.model_id, name
         expected = MOTION @ before.pose

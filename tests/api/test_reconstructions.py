@@ -11,9 +11,7 @@ are strict expected failures, so that the day they pass the test says so.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +20,6 @@ from catalign.data.reconstruction import Reconstruction, reconstruct
 from catalign.data.shapes import procedural_id, procedural_shape
 from catalign.data.views import random_object_pose
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
-from catalign.paths import DEFAULT_MODEL_DIR
 from catalign_client import AlignResult, Client, InvalidInputError
 
 SEED = 7  # proc-0007, a chair of the default library
@@ -34,13 +31,6 @@ VARIANTS = {
     "neighbour touching": replace(BASE, neighbour_gap=(0.0, 0.01), margin=(0.3, 0.4)),
 }
 NOT_YET = pytest.mark.xfail(strict=True, reason="the wall or neighbour is not set aside yet")
-
-
-@pytest.fixture(scope="module")
-def client(serve: Callable) -> Iterator[Client]:
-    library = Path(DEFAULT_MODEL_DIR) / "library"
-    with serve(library=library, warmup=False) as server, Client(server.url, timeout=120) as sdk:
-        yield sdk
 
 
 @pytest.fixture(scope="module")
@@ -68,10 +58,10 @@ def assert_chair_back(result: AlignResult, pose: np.ndarray) -> None:
     ],
 )
 def test_a_reconstruction_gets_its_chair_back_with_the_rest_set_aside(
-    client: Client, pose: np.ndarray, variant: str
+    shipped_client: Client, pose: np.ndarray, variant: str
 ):
     points = fused(VARIANTS[variant], pose)
-    result = client.align(points, up=(0, 0, 1), seed=0)
+    result = shipped_client.align(points, up=(0, 0, 1), seed=0)
     assert_chair_back(result, pose)
     if variant == "wide floor patch":
         assert result.points_set_aside > 0
@@ -80,10 +70,10 @@ def test_a_reconstruction_gets_its_chair_back_with_the_rest_set_aside(
 @pytest.mark.slow
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_what_a_loose_cut_adds_gets_an_answer_or_a_clear_422(
-    client: Client, pose: np.ndarray, variant: str
+    shipped_client: Client, pose: np.ndarray, variant: str
 ):
     try:
-        result = client.align(fused(VARIANTS[variant], pose), up=(0, 0, 1), seed=0)
+        result = shipped_client.align(fused(VARIANTS[variant], pose), up=(0, 0, 1), seed=0)
     except InvalidInputError as error:
         assert error.status_code == 422 and error.message
     else:
@@ -91,14 +81,16 @@ def test_what_a_loose_cut_adds_gets_an_answer_or_a_clear_422(
 
 
 @pytest.mark.slow
-def test_a_loop_closure_ghost_does_not_move_the_answer(client: Client, pose: np.ndarray):
+def test_a_loop_closure_ghost_does_not_move_the_answer(shipped_client: Client, pose: np.ndarray):
     """The whole fused surface twice, the second copy 2 degrees and 3 cm off (a map whose loop
     closed late): the answer lies on one of the two layers."""
     points = fused(BASE, pose)
     centre = points.mean(axis=0)
     ghost = make_pose(axis_angle(np.array([0.0, 0.0, 1.0]), np.radians(2.0)), np.zeros(3))
     ghost[:3, 3] = centre - ghost[:3, :3] @ centre + np.array([0.03, 0.0, 0.0])
-    result = client.align(np.vstack([points, transform(points, ghost)]), up=(0, 0, 1), seed=0)
+    result = shipped_client.align(
+        np.vstack([points, transform(points, ghost)]), up=(0, 0, 1), seed=0
+    )
     assert result.model_id == procedural_id(SEED)
     assert (
         min(rotation_error_deg(result.rotation, layer[:3, :3]) for layer in (pose, ghost @ pose))

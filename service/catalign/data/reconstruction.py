@@ -267,8 +267,9 @@ def reconstruct(
     config: Reconstruction | None = None,
     noise: DepthNoise | None = None,
 ) -> Fused:
-    """A reconstruction of ``shape`` (a mesh) standing upright at ``pose`` (model to world),
-    cut out loosely; see the module's docstring for the steps."""
+    """A reconstruction of ``shape`` (its mesh, else the alpha mesh of its points) placed at
+    ``pose`` (model to world; upright, or lying on the floor below it), cut out loosely; see
+    the module's docstring for the steps."""
     import open3d as o3d
 
     config = config or Reconstruction()

@@ -134,6 +134,7 @@ def build_cases(
     if source not in VIEW_SOURCES:
         raise ValueError(f"unknown view source {source!r}; expected one of {VIEW_SOURCES}")
     fused = source == "fused"
+    reconstruction = Reconstruction(floor_kept=1.0) if floor else Reconstruction()
     floor_kept = Floor() if floor else None
     standing = floor or table or fused
     turned = pose_mode == "turned" or (standing and pose_mode == "so3")
@@ -144,7 +145,6 @@ def build_cases(
             rng = np.random.default_rng([seed, index, view])
             pose = random_object_pose(rng, placed, height=shape.height / 2)
             if fused:
-                reconstruction = Reconstruction(floor_kept=1.0) if floor else Reconstruction()
                 made = reconstruct(shape, pose, rng, reconstruction)
                 seen, eye = made.points, made.eyes[0]
             else:
