@@ -3,7 +3,7 @@ chairs that have a CAD mesh, reconstructed once from the mesh and once from the 
 the shape's surface points alone (what :func:`catalign.data.reconstruction.reconstruct` does for
 the many shared shapes that have no mesh). The library is every validation chair, ``up`` given.
 
-Usage: .venv/bin/python bench/fused_proxy.py [--views 4] [--seed 0]
+Usage: .venv/bin/python bench/fused_proxy.py [--views 4] [--seeds 0 1]
 Writes bench/results/fused_proxy.md.
 """
 
@@ -23,22 +23,25 @@ from catalign.registration.methods import build_registrar
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=4)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     args = parser.parse_args()
     chairs = SharedChairs()
     library = metric_shapes(chairs, chairs.ids("val"))
     meshed = {i: s for i, s in library.items() if s.mesh is not None}
     registrar = build_registrar("learned", None, WORLD_UP, None)
-    rows = ["| surface fused | views | top-1 |", "|---|---|---|"]
+    rows = ["| surface fused | seed | views | top-1 |", "|---|---|---|---|"]
     sources = {
         "CAD mesh": meshed,
         "alpha mesh of the points": {i: Shape(i, s.points) for i, s in meshed.items()},
     }
     for name, shapes in sources.items():
-        cases = build_cases(shapes, args.views, args.seed, source="fused")
-        outcomes = run_cases(registrar, library, cases, args.seed, label=name)
-        top1 = sum(o.result is not None and o.result.model_id == o.case.shape_id for o in outcomes)
-        rows.append(f"| {name} | {len(outcomes)} | {top1} |")
+        for seed in args.seeds:
+            cases = build_cases(shapes, args.views, seed, source="fused")
+            outcomes = run_cases(registrar, library, cases, seed, label=f"{name}, seed {seed}")
+            top1 = sum(
+                o.result is not None and o.result.model_id == o.case.shape_id for o in outcomes
+            )
+            rows.append(f"| {name} | {seed} | {len(outcomes)} | {top1} |")
     publish("\n".join(rows) + "\n", Path("bench/results/fused_proxy.md"))
 
 

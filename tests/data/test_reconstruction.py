@@ -149,6 +149,21 @@ def test_a_point_only_shape_is_reconstructed_through_its_alpha_mesh(chair):
     assert len(fused.points) > 3000
 
 
+def test_the_alpha_mesh_of_exactly_flat_panels_keeps_their_points():
+    """Some shared chairs are sampled on boards of no thickness (thousands of points with one
+    coordinate exactly equal): their Delaunay tetrahedra are flat, and the alpha mesh must still
+    pass near nearly every sample."""
+    rng = np.random.default_rng(0)
+    board = rng.uniform(0.0, 0.4, size=(4000, 2))
+    seat = np.column_stack([board[:2000], np.full(2000, 0.45)])
+    back = np.column_stack([board[2000:, 0], np.full(2000, 0.4), 0.45 + board[2000:, 1]])
+    points = np.vstack([seat, back])
+    vertices, _ = alpha_mesh(points)
+    assert len(vertices) > 0
+    near = cKDTree(vertices).query(points)[0] < 0.01
+    assert near.mean() > 0.9
+
+
 def test_a_camera_sees_an_alpha_mesh_about_where_it_sees_the_cad_mesh(chair):
     """The alpha mesh of a chair's surface points stands in for its CAD mesh: from a few
     cameras, most pixels that hit the CAD mesh hit the alpha mesh too (it leaves some holes),

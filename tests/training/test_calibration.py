@@ -51,6 +51,23 @@ def test_a_tiny_calibration_writes_a_calibrator_the_engine_applies(
     rows = Samples.load(out / "samples.npz").matrix()
     np.testing.assert_allclose(refitted.probabilities(rows), calibrator.probabilities(rows))
 
+    # Reconstructions are collected beside (or instead of) single views, and a refit joins the
+    # samples of several runs.
+    fused = tmp_path / "fused"
+    args = ["calibrate", "--out", str(fused), "--views", "0", "--fused-views", "1"]
+    args += ["--max-shapes", "4", "--pose-mode", "upright", "--chairs-dir", str(chairs_root)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    fused_kinds = set(Samples.load(fused / "samples.npz").kinds)
+    assert fused_kinds and all(k.startswith("upright-fused/") for k in fused_kinds)
+    joined = tmp_path / "joined"
+    both = ["--samples", samples, "--samples", str(fused / "samples.npz")]
+    refit = runner.invoke(app, ["calibrate", "--out", str(joined), *both])
+    assert refit.exit_code == 0, refit.output
+    kinds = set(Samples.load(joined / "samples.npz").kinds)
+    assert fused_kinds < kinds and any(k.startswith("upright/") for k in kinds)
+    assert len(Calibrator.load(joined / "calibrator.json").card["data"]["collected_by"]) == 2
+
     # Given to the engine, it gives every answer a probability.
     extractor = LearnedExtractor()
     chairs = SharedChairs(chairs_root)
@@ -81,6 +98,13 @@ def test_the_shipped_calibrator_matches_this_code_and_saw_no_validation_chair() 
     chairs = data["card"]["data"]["chair_ids"]
     assert len(chairs) >= 50
     assert all(split_of(chair) == "train" for chair in chairs)  # never a validation chair
+
+
+def test_calibrate_refuses_zero_views_of_either_kind_with_a_sentence(tmp_path: Path) -> None:
+    args = ["calibrate", "--out", str(tmp_path), "--views", "0", "--fused-views", "0"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2
+    assert "nothing to fit on" in result.output
 
 
 def test_every_training_chair_is_observed_once_in_each_setting() -> None:

@@ -77,7 +77,8 @@ CROSS_FOLDS = 4
 @dataclass
 class Samples:
     """Answers and their labels: one row of :data:`SIGNALS` per answer, whether it is right,
-    its kind (``"<mode>/<setting>/<winner|alternative>"``) and the chair it is a view of.
+    its kind (``"<mode>[-fused]/<setting>/<winner|alternative>"``, ``-fused`` for a
+    reconstruction) and the chair it is a view of.
     Saved beside the calibrator (``samples.npz``) so that it can be refitted without
     registering the views again (``catalign calibrate --samples``)."""
 
@@ -105,6 +106,12 @@ class Samples:
             kinds=np.array(self.kinds),
             chairs=np.array(self.chairs),
         )
+
+    def extend(self, other: Samples) -> None:
+        self.rows += other.rows
+        self.right += other.right
+        self.kinds += other.kinds
+        self.chairs += other.chairs
 
     @classmethod
     def load(cls, path: Path) -> Samples:
@@ -180,13 +187,15 @@ def collect(
         observed = {i: shapes[i] for i in observed_ids}
         for mode in config.pose_modes:
             up = WORLD_UP if mode == "upright" else None
-            cases = build_cases(observed, config.views, config.seed, mode)
-            for case in tqdm(cases, desc=f"calibrate {setting} {mode}", disable=not progress):
-                try:
-                    result = registrar.engine.register(case.points, up=up, seed=config.seed)
-                except InvalidInputError:
-                    continue  # a refused view has no answer to calibrate
-                label(result, case, frames, samples, f"{mode}/{setting}", symmetries)
+            for source, views in (("single", config.views), ("fused", config.fused_views)):
+                name = mode if source == "single" else f"{mode}-fused"
+                cases = build_cases(observed, views, config.seed, mode, source=source)
+                for case in tqdm(cases, desc=f"calibrate {setting} {name}", disable=not progress):
+                    try:
+                        result = registrar.engine.register(case.points, up=up, seed=config.seed)
+                    except InvalidInputError:
+                        continue  # a refused view has no answer to calibrate
+                    label(result, case, frames, samples, f"{name}/{setting}", symmetries)
     return samples
 
 
@@ -235,14 +244,17 @@ def run(
     chairs: SharedChairs,
     extractor: FeatureExtractor | None,
     progress: bool = True,
-    samples_file: Path | None = None,
+    samples_files: Sequence[Path] = (),
 ) -> Calibrator:
-    """Collect samples on the training chairs with ``extractor`` (or read ``samples_file``),
-    fit, and save the calibrator and its samples to ``config.out``."""
+    """Collect samples on the training chairs with ``extractor`` (or read and join
+    ``samples_files``: single views from one run, reconstructions from another), fit, and save
+    the calibrator and its samples to ``config.out``."""
     started = time.perf_counter()
-    if samples_file is not None:
-        samples = Samples.load(samples_file)
-        source = f"samples read from {samples_file}"
+    if samples_files:
+        samples = Samples()
+        for path in samples_files:
+            samples.extend(Samples.load(path))
+        source = "samples read from " + ", ".join(str(p) for p in samples_files)
     elif extractor is None:
         raise ConfigError("calibration needs weights to register views, or --samples")
     else:
@@ -256,14 +268,13 @@ def run(
     winners = np.array([k.endswith("winner") for k in samples.kinds])
     right = np.array(samples.right, dtype=bool)
     card: dict[str, Any] = {
-        "command": config.command()
-        + ("" if samples_file is None else f" --samples {samples_file}"),
+        "command": config.command() + "".join(f" --samples {p}" for p in samples_files),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "seconds": round(time.perf_counter() - started, 1),
         "data": {
             "chairs": source,
             "chair_ids": sorted(set(samples.chairs)),
-            **_collection(config, samples_file),
+            **_collection(config, samples_files),
             "answers": len(samples.right),
             "by_kind": {k: samples.kinds.count(k) for k in sorted(set(samples.kinds))},
         },
@@ -276,16 +287,22 @@ def run(
     return calibrator
 
 
-def _collection(config: CalibrationConfig, samples_file: Path | None) -> dict[str, Any]:
+def _collection(config: CalibrationConfig, samples_files: Sequence[Path]) -> dict[str, Any]:
     """How the samples were collected: this run's views, seed and modes, or, for a refit,
-    those of the run that collected them (its card beside the samples)."""
-    if samples_file is None:
-        return {"views": config.views, "seed": config.seed, "pose_modes": list(config.pose_modes)}
-    card_path = samples_file.parent / CALIBRATOR_FILE
-    if not card_path.is_file():
-        return {"collected_by": f"unknown (no {CALIBRATOR_FILE} beside the samples)"}
-    card = json.loads(card_path.read_text()).get("card", {})
-    data = card.get("data", {})
-    return {"collected_by": card.get("command", "unknown")} | {
-        key: data[key] for key in ("views", "seed", "pose_modes") if key in data
-    }
+    the commands of the runs that collected them (their cards beside the samples)."""
+    if not samples_files:
+        return {
+            "views": config.views,
+            "fused_views": config.fused_views,
+            "seed": config.seed,
+            "pose_modes": list(config.pose_modes),
+        }
+    collected = []
+    for path in samples_files:
+        card_path = path.parent / CALIBRATOR_FILE
+        if not card_path.is_file():
+            collected.append(f"unknown (no {CALIBRATOR_FILE} beside {path})")
+            continue
+        card = json.loads(card_path.read_text()).get("card", {})
+        collected.append(card.get("command", "unknown"))
+    return {"collected_by": collected}

@@ -290,8 +290,14 @@ def calibrate(
         Path, typer.Option(help="Folder of the calibrator (ships in model_store/).")
     ] = CALIBRATION.out,
     views: Annotated[
-        int, typer.Option(min=1, help="Views per training chair and mode.")
+        int, typer.Option(min=0, help="Single views per training chair and mode.")
     ] = CALIBRATION.views,
+    fused_views: Annotated[
+        int,
+        typer.Option(
+            min=0, help="Reconstructions (fused views, cut out loosely) per chair and mode."
+        ),
+    ] = CALIBRATION.fused_views,
     seed: Annotated[int, typer.Option(help="Seed of the views and of RANSAC.")] = CALIBRATION.seed,
     pose_mode: Annotated[
         list[str] | None,
@@ -308,8 +314,10 @@ def calibrate(
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
     samples: Annotated[
-        Path | None,
-        typer.Option(help="Refit from a run's samples.npz instead of registering views again."),
+        list[Path] | None,
+        typer.Option(
+            help="Refit from runs' samples.npz (repeat to join runs) instead of registering views."
+        ),
     ] = None,
 ) -> None:
     """Fit the answers' confidence (boosted trees) on views of the training chairs."""
@@ -322,15 +330,18 @@ def calibrate(
         for mode in modes:
             if mode not in ("upright", "so3"):
                 raise ConfigError(f"unknown pose mode {mode!r}; use upright or so3")
+        if views + fused_views == 0 and not samples:
+            raise ConfigError("--views and --fused-views are both 0: there is nothing to fit on")
         config = CalibrationConfig(
             out=out,
             views=views,
+            fused_views=fused_views,
             seed=seed,
             pose_modes=modes,
             max_shapes=max_shapes,  # type: ignore[arg-type]
         )
         # A refit from saved samples needs no weights (nor their current calibrator).
-        extractor = None if samples is not None else LearnedExtractor(model_dir)
-        calibrator = run(config, SharedChairs(chairs_dir), extractor, samples_file=samples)
+        extractor = None if samples else LearnedExtractor(model_dir)
+        calibrator = run(config, SharedChairs(chairs_dir), extractor, samples_files=samples or ())
     typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
     typer.echo(f"calibrator written to {out}")

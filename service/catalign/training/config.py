@@ -140,6 +140,8 @@ class CalibrationConfig:
 
     out: Path = DEFAULT_MODEL_DIR / CALIBRATION_DIR
     views: int = 2
+    # Reconstructions per chair and mode beside the single views: what a mapping robot sends.
+    fused_views: int = 0
     seed: int = CALIBRATION_SEED
     pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
     max_shapes: int | None = None
@@ -147,6 +149,8 @@ class CalibrationConfig:
     def command(self) -> str:
         modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
         return (
-            f"catalign calibrate --out {self.out} --views {self.views} --seed {self.seed} "
-            f"{modes}" + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
+            f"catalign calibrate --out {self.out} --views {self.views}"
+            + (f" --fused-views {self.fused_views}" if self.fused_views else "")
+            + f" --seed {self.seed} {modes}"
+            + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
         )
