@@ -14,6 +14,7 @@ from catalign.data.reconstruction import (
     camera_to_world,
     depth_frame,
     drift_walk,
+    fuse,
     reconstruct,
     trajectory,
 )
@@ -49,6 +50,23 @@ def test_depth_frame_of_a_plane_is_its_distance_along_the_optical_axis():
     depth = depth_frame(scene, camera, CLEAN, np.random.default_rng(0), SILENT)
     assert depth.shape == (CLEAN.height, CLEAN.width)
     np.testing.assert_allclose(depth, 1.5, atol=1e-5)
+
+
+def test_frames_that_saw_nothing_are_left_out_of_the_fusion():
+    """A camera turned away from the object gives an empty frame (training rendered some):
+    it adds nothing, and frames that all saw nothing give no surface, not an Open3D error."""
+    scene = o3d.t.geometry.RaycastingScene()
+    wall = np.array([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], dtype=np.float32)
+    scene.add_triangles(
+        o3d.core.Tensor(wall), o3d.core.Tensor(np.array([[0, 1, 2], [0, 2, 3]], np.uint32))
+    )
+    camera = camera_at(np.zeros(3), 1.5, 90.0, 0.0, up=np.array([1.0, 0.0, 0.0]))
+    seen = depth_frame(scene, camera, CLEAN, np.random.default_rng(0), SILENT)
+    empty = np.zeros_like(seen)
+    pose = camera_to_world(camera)
+    surface = fuse([empty, seen, empty], [pose, pose, pose], CLEAN)
+    assert len(surface) > 1000 and np.allclose(surface[:, 2], 0.0, atol=CLEAN.voxel)
+    assert fuse([empty, empty], [pose, pose], CLEAN).shape == (0, 3)
 
 
 def test_depth_frame_pixels_unproject_onto_the_surface_they_saw(chair):

@@ -235,11 +235,17 @@ def fuse(
     focal, cx, cy = config.focal_px, config.width / 2 - 0.5, config.height / 2 - 0.5
     intrinsic = o3d.core.Tensor([[focal, 0, cx], [0, focal, cy], [0, 0, 1]], o3d.core.float64)
     far = config.distance[1] + 2.0
+    touched = False
     for depth, pose in zip(depths, believed, strict=True):
+        if not (depth > 0).any():
+            continue  # a frame that saw nothing near the object: Open3D refuses to integrate it
+        touched = True
         image = o3d.t.geometry.Image(o3d.core.Tensor(depth.astype(np.float32)))
         extrinsic = o3d.core.Tensor(np.linalg.inv(pose), o3d.core.float64)
         blocks = grid.compute_unique_block_coordinates(image, intrinsic, extrinsic, 1.0, far)
         grid.integrate(blocks, image, intrinsic, extrinsic, 1.0, far, 4.0)
+    if not touched:
+        return np.empty((0, 3))
     surface = grid.extract_triangle_mesh(weight_threshold=0.5)
     vertices = surface.vertex.positions.numpy().astype(np.float64)
     # The grid's hash map hands blocks out in no fixed order: sort, so a seed fixes the cloud.
