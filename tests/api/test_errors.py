@@ -157,6 +157,8 @@ def test_a_wrong_method_names_every_method_the_path_allows(client: httpx.Client)
     assert response.status_code == 405
     assert response.headers["allow"] == "DELETE, GET"
     assert client.put("/models").headers["allow"] == "GET, POST"
+    # /models/{id}/points is also what /models/{id:path} would match, with a slash in the id
+    assert client.put("/models/proc-0000/points").headers["allow"] == "GET"
 
 
 def test_an_unknown_model_is_named_without_the_servers_paths(

@@ -24,6 +24,7 @@ text never shown to the caller.
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 
 from fastapi import FastAPI, Request
@@ -188,15 +189,35 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 def allowed_methods(app: FastAPI, request: Request) -> list[str]:
-    """Every method some route serves at the request's path. Starlette's 405 names only the
-    first route that matched the path, so a path served by two routes (GET and DELETE
-    ``/models/{id}``) would claim to allow one."""
+    """Every method served at the request's path. Starlette's 405 names only the first route
+    that matched the path, so a path served by two routes (GET and DELETE ``/models/{id}``)
+    would claim to allow one. A documented path answers with the methods ``openapi.yaml`` gives
+    its template (a parameter never spans a slash there, whereas ``/models/{id:path}`` also
+    matches ``/models/x/points``); any other path with those of the routes that match it."""
+    path = request.scope["path"]
+    for template, methods in _documented_paths(app):
+        if template.fullmatch(path):
+            return methods
     allowed = []
     for method in _METHODS:
         scope = {**request.scope, "method": method}
         if any(route.matches(scope)[0] is Match.FULL for route in app.router.routes):
             allowed.append(method)
     return allowed
+
+
+def _documented_paths(app: FastAPI) -> list[tuple[re.Pattern[str], list[str]]]:
+    """The OpenAPI paths of ``app`` as patterns (a parameter is one path segment), each with
+    its methods in ``_METHODS`` order."""
+    cached = getattr(app.state, "documented_paths", None)
+    if cached is None:
+        cached = []
+        for path, operations in app.openapi()["paths"].items():
+            pattern = re.sub(r"\\\{[^}]*\\\}", "[^/]+", re.escape(path))
+            served = {method.upper() for method in operations}
+            cached.append((re.compile(pattern), [m for m in _METHODS if m in served]))
+        app.state.documented_paths = cached
+    return cached
 
 
 def describe_validation_errors(errors: object) -> str:
