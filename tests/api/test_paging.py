@@ -9,10 +9,12 @@ from pathlib import Path
 import grpc
 import httpx
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 import catalign_client as sdk
 from catalign.api import catalign_pb2, catalign_pb2_grpc
-from catalign.api.paging import decode_cursor, encode_cursor, page
+from catalign.api.paging import CURSOR_PATTERN, decode_cursor, encode_cursor, page
 from catalign.errors import InvalidInputError
 from tests.api.conftest import Server
 
@@ -40,9 +42,22 @@ def test_pages_are_slices_of_the_sorted_ids() -> None:
     assert decode_cursor(encode_cursor("chair-7")) == "chair-7"
     # A cursor of a model removed since still resumes after where it stood.
     assert page(ids, ids, 2, encode_cursor("m0045"))[0] == ["m005", "m006"]
-    for bad in ("", "not base64!", encode_cursor("x").upper(), "YWZ0ZXI6Li4v"):
+    for bad in ("", "not base64!", encode_cursor("x")[1:], encode_cursor("xyz") + "A"):
         with pytest.raises(InvalidInputError, match="not one this server gave"):
             decode_cursor(bad)
+
+
+@given(st.text(alphabet="YWZ0XI6ab_-=+/!", max_size=24) | st.builds(encode_cursor, st.text()))
+def test_a_cursor_is_taken_exactly_when_it_has_the_documented_form(cursor: str) -> None:
+    """What ``openapi.yaml`` tells clients a cursor looks like is what the server takes: any
+    such cursor resumes somewhere (a position among sorted ids), any other is a 422."""
+    documented = CURSOR_PATTERN.fullmatch(cursor) is not None
+    try:
+        decode_cursor(cursor)
+    except InvalidInputError:
+        assert not documented
+    else:
+        assert documented
 
 
 def test_http_pages_cover_the_library_once(server: Server) -> None:

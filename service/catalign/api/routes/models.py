@@ -26,7 +26,7 @@ from starlette.concurrency import run_in_threadpool
 from catalign.api.deps import IdempotencyDep, IdempotencyKeyDep, ServiceDep, require_writable
 from catalign.api.idempotency import Answer, Change, IdempotencyStore
 from catalign.api.inputs import BINARY, MULTIPART, read_upload
-from catalign.api.paging import DEFAULT_PAGE, MAX_PAGE, page
+from catalign.api.paging import CURSOR_PATTERN, DEFAULT_PAGE, MAX_PAGE, page
 from catalign.api.routes import error_responses
 from catalign.api.schemas import ModelList, ModelPublic, ModelRemoved
 from catalign.errors import ModelNotFoundError
@@ -118,6 +118,7 @@ async def list_models(
         Query(
             max_length=400,
             description="The next_cursor of the page before; leave it out for the first page.",
+            json_schema_extra={"pattern": f"^{CURSOR_PATTERN.pattern}$"},
         ),
     ] = None,
 ) -> ModelList:
