@@ -159,6 +159,9 @@ def test_a_wrong_method_names_every_method_the_path_allows(client: httpx.Client)
     assert client.put("/models").headers["allow"] == "GET, POST"
     # /models/{id}/points is also what /models/{id:path} would match, with a slash in the id
     assert client.put("/models/proc-0000/points").headers["allow"] == "GET"
+    removal = client.delete("/models/proc-0000/points")  # not a removal of "proc-0000/points"
+    assert (removal.status_code, removal.headers["allow"]) == (405, "GET")
+    assert client.get("/models/proc-0000").status_code == 200  # the model is still there
 
 
 def test_an_unknown_model_is_named_without_the_servers_paths(

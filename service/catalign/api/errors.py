@@ -194,16 +194,24 @@ def allowed_methods(app: FastAPI, request: Request) -> list[str]:
     would claim to allow one. A documented path answers with the methods ``openapi.yaml`` gives
     its template (a parameter never spans a slash there, whereas ``/models/{id:path}`` also
     matches ``/models/x/points``); any other path with those of the routes that match it."""
-    path = request.scope["path"]
-    for template, methods in _documented_paths(app):
-        if template.fullmatch(path):
-            return methods
+    documented = documented_methods(app, request.scope["path"])
+    if documented is not None:
+        return documented
     allowed = []
     for method in _METHODS:
         scope = {**request.scope, "method": method}
         if any(route.matches(scope)[0] is Match.FULL for route in app.router.routes):
             allowed.append(method)
     return allowed
+
+
+def documented_methods(app: FastAPI, path: str) -> list[str] | None:
+    """The methods ``openapi.yaml`` gives the template ``path`` matches, None if it matches
+    none."""
+    for template, methods in _documented_paths(app):
+        if template.fullmatch(path):
+            return methods
+    return None
 
 
 def _documented_paths(app: FastAPI) -> list[tuple[re.Pattern[str], list[str]]]:

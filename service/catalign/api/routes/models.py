@@ -22,8 +22,10 @@ import numpy as np
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from catalign.api.deps import IdempotencyDep, IdempotencyKeyDep, ServiceDep, require_writable
+from catalign.api.errors import documented_methods
 from catalign.api.idempotency import Answer, Change, IdempotencyStore
 from catalign.api.inputs import BINARY, MULTIPART, read_upload
 from catalign.api.paging import CURSOR_PATTERN, DEFAULT_PAGE, MAX_PAGE, page
@@ -44,6 +46,15 @@ router = APIRouter(prefix="/models", tags=["models"])
 
 DEFAULT_MODEL_POINTS = 5_000
 MAX_MODEL_POINTS = 20_000  # a library entry keeps 10,000
+
+
+def documented_method(request: Request) -> None:
+    """405 (naming the methods there) for a path of one documented resource that
+    ``{model_id:path}`` took in as an id: ``DELETE /models/x/points`` removes no model
+    ``x/points``. Checked before anything else, a read-only server included."""
+    documented = documented_methods(request.app, request.scope["path"])
+    if documented is not None and request.method not in documented:
+        raise StarletteHTTPException(status.HTTP_405_METHOD_NOT_ALLOWED)
 
 
 def checked_model_id(
@@ -216,7 +227,7 @@ async def add_model(
 @router.delete(
     "/{model_id:path}",
     response_model=ModelRemoved,
-    dependencies=[Depends(require_writable)],
+    dependencies=[Depends(documented_method), Depends(require_writable)],
     responses=error_responses(401, 403, 404, 422, 503),
 )
 async def remove_model(
