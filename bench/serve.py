@@ -135,7 +135,8 @@ class ServerProcess:
     """``catalign serve`` on free loopback ports, until ``stop``; its log goes to a temp file.
     ``mode``: its workers are ``processes`` (one engine each) or ``threads`` (one engine);
     ``library``: the library it serves; ``deadline_s``: each request's deadline (by default as
-    long as the client's timeout, so that no request is cut off)."""
+    long as the client's timeout, so that no request is cut off); ``api_key``: the X-API-Key it
+    requires (none by default)."""
 
     def __init__(
         self,
@@ -145,6 +146,7 @@ class ServerProcess:
         threads_per_worker: int,
         library: Path = LIBRARY,
         deadline_s: float = REQUEST_TIMEOUT_S,
+        api_key: str | None = None,
     ) -> None:
         self.port = free_port()
         self.grpc_port = free_port()
@@ -173,6 +175,8 @@ class ServerProcess:
             "--workers": workers,
             "--queue": queue,
         }
+        if api_key is not None:
+            flags["--api-key"] = api_key
         command = [exe, "serve", *(str(x) for pair in flags.items() for x in pair)]
         self._process = subprocess.Popen(
             command,
