@@ -7,32 +7,22 @@ examples per operation so that the script itself stays working.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+from tests._bench import run_bench
 
-ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow
 
 
 def test_a_tiny_contract_run_counts_the_servers_answers(model_dir: Path, tmp_path: Path) -> None:
     out, rows = tmp_path / "contract.md", tmp_path / "contract.json"
-    command = [
-        sys.executable,
-        str(ROOT / "bench" / "contract.py"),
+    done = run_bench(
+        "contract.py",
         *("--requests", "50", "--examples", "2", "--max-runs", "1"),
         *("--out", str(out), "--rows", str(rows)),
-    ]
-    environment = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-    environment["PYTHONPATH"] = os.pathsep.join(
-        [str(ROOT / "service"), str(ROOT / "client"), environment.get("PYTHONPATH", "")]
-    )
-    done = subprocess.run(
-        command, env=environment, capture_output=True, text=True, timeout=300, check=False
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr[-3000:]
 

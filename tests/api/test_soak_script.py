@@ -7,33 +7,23 @@ worker process with 2 library changes, so that the script itself stays working.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+from tests._bench import run_bench
 
-ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow
 
 
 def test_a_tiny_soak_writes_its_rows_report_and_figure(model_dir: Path, tmp_path: Path) -> None:
     out, rows, figure = tmp_path / "soak.md", tmp_path / "soak.json", tmp_path / "soak.png"
-    command = [
-        sys.executable,
-        str(ROOT / "bench" / "soak.py"),
+    done = run_bench(
+        "soak.py",
         *("--requests", "40", "--block", "20", "--change-every", "20"),
         *("--points", "2000", "--views", "2", "--workers", "1"),
         *("--out", str(out), "--rows", str(rows), "--figure", str(figure)),
-    ]
-    environment = {k: v for k, v in os.environ.items() if not k.startswith("CATALIGN_")}
-    environment["PYTHONPATH"] = os.pathsep.join(
-        [str(ROOT / "service"), str(ROOT / "client"), environment.get("PYTHONPATH", "")]
-    )
-    done = subprocess.run(
-        command, env=environment, capture_output=True, text=True, timeout=180, check=False
+        timeout=180,
     )
     assert done.returncode == 0, done.stderr[-3000:]
 
