@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -260,3 +261,17 @@ def test_read_mesh_on_vertex_only_obj(tmp_path: Path):
 
 def test_shape_read_error_is_a_catalign_error():
     assert issubclass(ShapeReadError, CatalignError)
+
+
+def test_a_file_trimesh_reads_anyway_leaves_no_traceback_in_the_log(
+    tmp_path: Path, box: trimesh.Trimesh, caplog: pytest.LogCaptureFixture
+):
+    """An ASCII STL with a garbled normal is read (normals are not used), and trimesh's warning
+    about it, which carries a traceback, stays out of the service's log."""
+    text = box.export(file_type="stl_ascii").replace("facet normal", "facet normal 1e", 1)
+    path = tmp_path / "garbled_normal.stl"
+    path.write_text(text)
+    with caplog.at_level(logging.WARNING):
+        shape = read_shape(path)
+    assert shape.mesh is not None and len(shape.mesh.faces) == len(box.faces)
+    assert not [r for r in caplog.records if r.name.startswith("trimesh")], caplog.text

@@ -11,6 +11,7 @@ file cannot justify, and the server would be killed for it.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,11 @@ from catalign.geometry.headers import check_header
 MESH_SUFFIXES = frozenset({".obj", ".ply", ".stl", ".off", ".glb"})
 POINT_SUFFIXES = frozenset({".ply", ".pcd", ".npy", ".xyz"})
 SUPPORTED_SUFFIXES = MESH_SUFFIXES | POINT_SUFFIXES
+
+# trimesh logs a warning with a traceback for a file it reads anyway (an ASCII STL with a
+# garbled normal) or before it gives up; the caller hears of a bad file from ShapeReadError,
+# in a sentence, so only trimesh's errors reach the log.
+logging.getLogger("trimesh").setLevel(logging.ERROR)
 
 
 @dataclass(frozen=True)
