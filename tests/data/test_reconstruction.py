@@ -128,6 +128,18 @@ def test_a_clean_reconstruction_lies_on_the_chair_and_sees_more_of_it_than_one_v
     assert covered.mean() > 0.6
 
 
+def test_a_decimated_reconstruction_keeps_few_points_on_the_same_surface(chair):
+    """ScanNet-like thinning: a twentieth of the triangles leaves far fewer vertices, still on
+    the chair, and its edges: the points are spread over the chair, not gathered in one part."""
+    pose = placed(chair)
+    full = reconstruct(chair, pose, np.random.default_rng(0), CLEAN, SILENT)
+    thin = reconstruct(chair, pose, np.random.default_rng(0), replace(CLEAN, decimate=0.05), SILENT)
+    assert len(thin.points) < 0.15 * len(full.points)
+    assert np.median(distance_to_surface(thin.points, chair, pose)) < CLEAN.voxel
+    extent = np.ptp(thin.points, axis=0)
+    assert np.all(extent > 0.9 * np.ptp(full.points, axis=0))
+
+
 def test_the_loose_cut_keeps_floor_only_when_asked(chair):
     pose = placed(chair)
     floor_height = transform(chair.mesh.vertices, pose)[:, 2].min()
@@ -209,3 +221,6 @@ def test_a_reconstruction_refuses_settings_that_cannot_make_one():
         Reconstruction(frames=0)
     with pytest.raises(ValueError, match="voxel"):
         Reconstruction(voxel=0.0)
+    for share in (0.0, 1.5):
+        with pytest.raises(ValueError, match="decimate"):
+            Reconstruction(decimate=share)

@@ -120,6 +120,7 @@ def build_cases(
     floor: bool = False,
     table: bool = False,
     source: ViewSource = "single",
+    reconstruction: Reconstruction | None = None,
 ) -> list[TestCase]:
     """``views`` noisy partial observations of every shape, all derived from ``seed``.
 
@@ -128,13 +129,16 @@ def build_cases(
     (:class:`~catalign.data.views.Floor`, default margin) in every view; a chair stands upright
     on it, so an ``so3`` view with a floor is a ``turned`` one; so it does under a ``table``
     (:class:`~catalign.data.views.Table`, drawn at random with a generator of its own).
+    ``reconstruction`` sets how fused views are made (default: the simulator's, the floor
+    always kept with ``floor``).
     """
     if pose_mode not in VIEW_MODES:
         raise ValueError(f"unknown view mode {pose_mode!r}; expected one of {VIEW_MODES}")
     if source not in VIEW_SOURCES:
         raise ValueError(f"unknown view source {source!r}; expected one of {VIEW_SOURCES}")
     fused = source == "fused"
-    reconstruction = Reconstruction(floor_kept=1.0) if floor else Reconstruction()
+    if reconstruction is None:
+        reconstruction = Reconstruction(floor_kept=1.0) if floor else Reconstruction()
     floor_kept = Floor() if floor else None
     standing = floor or table or fused
     turned = pose_mode == "turned" or (standing and pose_mode == "so3")
