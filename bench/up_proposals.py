@@ -5,9 +5,10 @@ a scan whose true up is not among them lies down. The real ScanNet chairs are th
 decimated mesh (378 to 1,289 points each). This asks whether thinning alone explains their
 misses: on fused views of the validation chairs turned at random (the cases of ``catalign
 evaluate --views fused --pose-mode turned --seed S``), the share whose first proposed up is
-within ``--within`` degrees of the truth and whose first three proposals hold one; for the
-fusion as made, decimated to a share of its triangles (``--decimate``, as ScanNet's meshes are)
-and thinned at random to a number of points (``--points``). Then the real scans' proposals
+within ``--within`` degrees of the truth (by default the evaluation's ``up@1`` tolerance)
+and whose first three proposals hold one; for the fusion as made, decimated to a share of
+its triangles (``--decimate``, as ScanNet's meshes are) and thinned at random to a number of
+points (``--points``). Then the real scans' proposals
 (+Z is up). Writes the tables to ``--out`` (default ``bench/results/up_proposals.md``).
 
     .venv/bin/python bench/up_proposals.py [--seed 0] [--decimate 0.05 0.0167] [--points 600 400]
@@ -23,6 +24,7 @@ from _report import load_average, publish
 
 from catalign.data.reconstruction import Reconstruction
 from catalign.data.shapes import SharedChairs, default_chairs_root
+from catalign.evaluation.metrics import UP_TOLERANCE_DEG
 from catalign.evaluation.protocol import TestCase, build_cases, metric_shapes
 from catalign.features.orientation import OrientationProposer, find_orientation
 from catalign.frames import MODEL_UP
@@ -60,7 +62,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=2, help="per validation chair")
     parser.add_argument("--decimate", type=float, nargs="*", default=[0.05, 1 / 60])
     parser.add_argument("--points", type=int, nargs="*", default=[600, 400])
-    parser.add_argument("--within", type=float, default=15.0, help="degrees")
+    parser.add_argument("--within", type=float, default=UP_TOLERANCE_DEG, help="degrees")
     parser.add_argument("--model-dir", type=Path, default=DEFAULT_MODEL_DIR)
     parser.add_argument("--scans", type=Path, default=default_chairs_root().parent / "real_scans")
     parser.add_argument(

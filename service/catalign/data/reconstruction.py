@@ -252,11 +252,14 @@ def fuse(
         grid.integrate(blocks, image, intrinsic, extrinsic, 1.0, far, 4.0)
     if not touched:
         return np.empty((0, 3))
-    surface = grid.extract_triangle_mesh(weight_threshold=0.5).to_legacy()
-    if config.decimate is not None:
-        kept = max(1, round(len(surface.triangles) * config.decimate))
-        surface = surface.simplify_quadric_decimation(target_number_of_triangles=kept)
-    vertices = np.asarray(surface.vertices, dtype=np.float64)
+    surface = grid.extract_triangle_mesh(weight_threshold=0.5)
+    if config.decimate is None:
+        vertices = surface.vertex.positions.numpy().astype(np.float64)
+    else:  # Open3D decimates legacy meshes only
+        mesh = surface.to_legacy()
+        kept = max(1, round(len(mesh.triangles) * config.decimate))
+        mesh = mesh.simplify_quadric_decimation(target_number_of_triangles=kept)
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
     # The grid's hash map hands blocks out in no fixed order: sort, so a seed fixes the cloud.
     return vertices[np.lexsort(vertices.T[::-1])]
 
