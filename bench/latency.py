@@ -5,7 +5,8 @@ a query whose heading proposal is confident and whose answer is sure is describe
 heading, others at two, so one view is not typical) are registered against libraries of 10, 50,
 200 and 1000 procedural chairs (built once with the shipped weights and cached under
 ``--cache``), with the engine's defaults: with ``up``, with ``up`` at both proposed headings
-always (``orient.heading_mass=none``), with ``up`` and no sweep (``sweep.models=0``: the
+always (``orient.heading_mass=none``), with ``up`` and ICP on one thread (``icp.threads=1``: what
+the worker's second thread buys), with ``up`` and no sweep (``sweep.models=0``: the
 sweep's cost), with and without ``up`` with every exact fit taken as sure
 (``decision.sure_fitness=0.9``: the cost of refining swept poses when a fit is exact but not
 sure), with ``up`` at every heading (no heading proposals: the baseline of the features stage),
@@ -50,6 +51,7 @@ QUERY_SEED = 5000
 MODES = {
     "learned engine, up": ({}, WORLD_UP),
     "learned engine, up, both proposed headings": ({"orient": {"heading_mass": None}}, WORLD_UP),
+    "learned engine, up, ICP on one thread": ({"icp": {"threads": 1}}, WORLD_UP),
     "learned engine, up, no sweep": ({"sweep": {"models": 0}}, WORLD_UP),
     "learned engine, up, every exact fit sure": ({"decision": {"sure_fitness": 0.9}}, WORLD_UP),
     "learned engine, up, every heading": ({"orient": {"heading_proposals": None}}, WORLD_UP),

@@ -23,6 +23,8 @@ import threading
 from pathlib import Path
 
 _M_ARENA_MAX = -8  # glibc's mallopt parameter number
+# The thread budget :func:`limit_threads` gave this process's workers (None: not limited).
+_budget: int | None = None
 
 
 def cores() -> int:
@@ -71,6 +73,12 @@ def cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> int | None:
     return None
 
 
+def worker_threads() -> int:
+    """Threads a worker's own parallel loops may use (ICP's): the budget :func:`limit_threads`
+    gave the workers, else every core, as torch's default."""
+    return _budget if _budget is not None else cores()
+
+
 def default_threads_per_worker(workers: int) -> int:
     """An even share of the cores for each of ``workers`` workers, at least one thread."""
     return max(1, cores() // max(1, workers))
@@ -113,6 +121,8 @@ def limit_threads(threads: int, total: int, niceness: int = 0) -> None:
     """Use ``threads`` threads in this worker (torch, OpenMP), one for BLAS (module docstring)
     and ``total`` in Open3D, and run this thread ``niceness`` steps below the process's
     priority."""
+    global _budget
+    _budget = threads
     if niceness:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
     import open3d

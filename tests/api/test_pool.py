@@ -7,6 +7,7 @@ import os
 import platform
 import threading
 import time
+from collections.abc import Iterator
 from functools import partial
 
 import pytest
@@ -139,11 +140,27 @@ def test_a_job_whose_deadline_passed_in_the_queue_never_runs() -> None:
     asyncio.run(scenario())
 
 
+@pytest.fixture
+def thread_limits_restored() -> Iterator[None]:
+    """The limits :func:`limit_threads` sets are process-wide: give the other tests theirs
+    back."""
+    import open3d
+    import torch
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    saved = torch.get_num_threads(), threadpool_info(), open3d.utility.get_max_threads()
+    yield
+    torch.set_num_threads(saved[0])
+    threadpool_limits(limits={pool["prefix"]: pool["num_threads"] for pool in saved[1]})
+    open3d.utility.set_max_threads(saved[2])
+
+
+@pytest.mark.usefixtures("thread_limits_restored")
 def test_workers_run_with_the_thread_limits_of_their_share() -> None:
     """Each worker thread gets its thread-pool limits once, before its first job."""
     import open3d
     import torch
-    from threadpoolctl import threadpool_info, threadpool_limits
+    from threadpoolctl import threadpool_info
 
     def limits() -> tuple[int, dict[str, set[int]], int]:
         counts: dict[str, set[int]] = {}
@@ -161,13 +178,7 @@ def test_workers_run_with_the_thread_limits_of_their_share() -> None:
         assert open3d_threads == 2
         pool.shutdown()
 
-    saved = torch.get_num_threads(), threadpool_info(), open3d.utility.get_max_threads()
-    try:
-        asyncio.run(scenario())
-    finally:  # the limits are process-wide: give the other tests theirs back
-        torch.set_num_threads(saved[0])
-        threadpool_limits(limits={pool["prefix"]: pool["num_threads"] for pool in saved[1]})
-        open3d.utility.set_max_threads(saved[2])
+    asyncio.run(scenario())
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="malloc_trim is glibc's")
@@ -185,3 +196,23 @@ def test_memory_freed_inside_the_heap_goes_back_to_the_system() -> None:
     assert release_free_memory() is True
     assert before - resident() > 32 * 2**20
     assert len(kept) == 64 * 1024
+
+
+@pytest.mark.usefixtures("thread_limits_restored")
+def test_icp_takes_the_thread_budget_its_worker_was_given(monkeypatch) -> None:
+    """ICP's threads follow the worker's share (one here), not the machine's cores."""
+    import catalign.threads
+
+    monkeypatch.setattr(catalign.threads, "_budget", None)
+    assert catalign.threads.worker_threads() == catalign.threads.cores()
+
+    async def scenario() -> int:
+        pool = WorkPool(
+            workers=1, queue=0, metrics=Metrics(), initializer=partial(limit_threads, 1, total=1)
+        )
+        try:
+            return await pool.run(catalign.threads.worker_threads)
+        finally:
+            pool.shutdown()
+
+    assert asyncio.run(scenario()) == 1

@@ -89,7 +89,7 @@ DEFAULTS = {
         "up_belief_power": 0.3,
         "heading_belief_power": 0.3,
     },
-    "icp": {"factor": 1.0, "iterations": 30, "points": 600, "poses": 3},
+    "icp": {"factor": 1.0, "iterations": 30, "points": 600, "threads": None, "poses": 3},
     "decision": {
         "alternatives": 3,
         "confidence_margin": 0.2,

@@ -126,6 +126,7 @@ def build_refiner(config: EngineConfig, library: Library, *, distance: float) ->
         distance=distance,
         icp_iterations=config.icp.iterations,
         icp_points=config.icp.points,
+        threads=config.icp.threads,
         model_cache=config.model_cache,
     )
 

@@ -145,6 +145,10 @@ class IcpOptions(OptionGroup):
     points: int | None = Field(default=600, ge=3)
     """Query key points ICP aligns, a fixed subset (None: all); 600 measured as accurate as all
     of them and a quarter faster (``bench/results/tradeoff-icp.md``)."""
+    threads: int | None = Field(default=None, ge=1)
+    """Threads each ICP pass and fit search uses (None: the worker's thread budget, as
+    torch's); on two cores two threads measured a third faster than one
+    (``bench/latency.py``)."""
     poses: int = Field(default=3, ge=1)
     """Best poses that get ICP (several starts of one answer find its best fit)."""
 

@@ -32,12 +32,10 @@ from catalign.geometry.se3 import invert, split_scale, transform
 from catalign.library.loaded import Library
 from catalign.registration.stages.hypothesise import Hypothesis
 from catalign.registration.stages.model_cache import ModelCache
+from catalign.threads import worker_threads
 
 # ICP distances, in multiples of the ICP distance: coarse first, then fine.
 ICP_SCHEDULE = (3.0, 1.0)
-# small_gicp's threads: it brings its own OpenMP runtime, whose workers and torch's spin against
-# each other on a worker's cores (one thread measured 25 % faster than two on two cores).
-THREADS = 1
 # Neighbours a surface normal is fitted to.
 NORMAL_NEIGHBOURS = 20
 
@@ -66,7 +64,9 @@ class Refiner:
 
     ``distance`` is the ICP inlier distance (metres, the fine one); ``icp_iterations`` the
     most Gauss-Newton steps of each pass; ``icp_points`` the query points ICP aligns (a
-    fixed subset; None: all).
+    fixed subset; None: all); ``threads`` the threads of each pass and fit search (None: the
+    worker's budget, :func:`~catalign.threads.worker_threads`, read at each call because a
+    worker sets it after the engine is built).
     """
 
     library: Library
@@ -74,6 +74,7 @@ class Refiner:
     distance: float
     icp_iterations: int
     icp_points: int | None
+    threads: int | None = None
     model_cache: int | None = None
     _surfaces: ModelCache[_Surface] = field(init=False, repr=False)
 
@@ -110,7 +111,7 @@ class Refiner:
                 current,
                 registration_type="PLANE_ICP",
                 max_correspondence_distance=reach,
-                num_threads=THREADS,
+                num_threads=self._threads(),
                 max_iterations=self.icp_iterations,
             ).T_target_source
         return _translation_scaled(invert(np.asarray(current)), scale)
@@ -129,7 +130,7 @@ class Refiner:
         grid = self.library[hypothesis.model_id].grid
         near = local[may_be_within(grid, local, self.distance / scale)]
         _, squared = self.surface(hypothesis.model_id).tree.batch_nearest_neighbor_search(
-            near, num_threads=THREADS
+            near, num_threads=self._threads()
         )
         distances = np.sqrt(np.asarray(squared)) * scale
         inliers = distances[distances < self.distance]
@@ -138,7 +139,12 @@ class Refiner:
 
     def surface(self, model_id: str) -> _Surface:
         """The model's surface points with normals and KD-tree (cached)."""
-        return self._surfaces.get(model_id, lambda: _surface(self.library[model_id].points))
+        return self._surfaces.get(
+            model_id, lambda: _surface(self.library[model_id].points, self._threads())
+        )
+
+    def _threads(self) -> int:
+        return self.threads if self.threads is not None else worker_threads()
 
 
 def may_be_within(grid: DistanceGrid, points: np.ndarray, distance: float) -> np.ndarray:
@@ -161,11 +167,11 @@ def _in_reach(grid: DistanceGrid, points: np.ndarray, pose: np.ndarray, reach: f
     return points[grid.distances(transform(points, pose)) < grid.truncation]
 
 
-def _surface(points: np.ndarray) -> _Surface:
+def _surface(points: np.ndarray, threads: int) -> _Surface:
     """A model's surface points with their normals and KD-tree, for point-to-plane ICP."""
     cloud = small_gicp.PointCloud(points.astype(np.float64))
-    tree = small_gicp.KdTree(cloud, THREADS)
-    small_gicp.estimate_normals(cloud, tree, NORMAL_NEIGHBOURS, THREADS)
+    tree = small_gicp.KdTree(cloud, threads)
+    small_gicp.estimate_normals(cloud, tree, NORMAL_NEIGHBOURS, threads)
     return _Surface(cloud, tree)
 
 
