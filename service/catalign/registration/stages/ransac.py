@@ -125,7 +125,7 @@ def ransac(
         idx = idx[keep]
         scale, rotation, translation = umeyama_batch(x[idx], y[idx], estimate_scale=estimate_scale)
         # The three samples must fit their own transform (Open3D's distance checker).
-        fitted = scale[:, None, None] * np.einsum("hij,hkj->hki", rotation, x[idx])
+        fitted = scale[:, None, None] * (x[idx] @ rotation.transpose(0, 2, 1))
         residual = np.linalg.norm(fitted + translation[:, None] - y[idx], axis=2)
         keep = residual.max(axis=1) < inlier_distance
         if up_check is not None:

@@ -95,7 +95,7 @@ def sweep_model(
     cell = grid.cell
     # Every read stays inside the grid: the fine pass reaches a step past the coarse grid.
     margin = min(distance, grid.truncation - step_cells * cell)
-    turned = np.einsum("nj,yjk->ynk", levelled, yaw_rotations(yaws))  # R(yaw)^T x, per yaw
+    turned = levelled @ yaw_rotations(yaws)  # R(yaw)^T x, per yaw
     low = bbox_min - margin - turned.min(axis=1)
     high = bbox_max + margin - turned.max(axis=1)
     feasible = np.flatnonzero(np.all(high >= low, axis=1))
