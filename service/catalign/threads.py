@@ -75,8 +75,14 @@ def cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> int | None:
 
 def worker_threads() -> int:
     """Threads a worker's own parallel loops may use (ICP's): the budget :func:`limit_threads`
-    gave the workers, else every core, as torch's default."""
-    return _budget if _budget is not None else cores()
+    gave the workers, else ``OMP_NUM_THREADS`` when it is a positive number, else every core,
+    as torch's default."""
+    if _budget is not None:
+        return _budget
+    try:
+        return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
+    except ValueError:
+        return cores()
 
 
 def default_threads_per_worker(workers: int) -> int:

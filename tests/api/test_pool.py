@@ -204,7 +204,10 @@ def test_icp_takes_the_thread_budget_its_worker_was_given(monkeypatch) -> None:
     import catalign.threads
 
     monkeypatch.setattr(catalign.threads, "_budget", None)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert catalign.threads.worker_threads() == catalign.threads.cores()
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # as torch's default follows it
+    assert catalign.threads.worker_threads() == 1
 
     async def scenario() -> int:
         pool = WorkPool(
