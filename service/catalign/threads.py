@@ -17,6 +17,7 @@ change.
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 import os
 import threading
@@ -82,7 +83,14 @@ def worker_threads() -> int:
     try:
         return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
     except ValueError:
-        return cores()
+        return _cores_at_start()
+
+
+@functools.cache
+def _cores_at_start() -> int:
+    """:func:`cores`, read once: ICP asks at every pass, and the affinity and the cgroup's
+    files do not change under a running process."""
+    return cores()
 
 
 def default_threads_per_worker(workers: int) -> int:
