@@ -11,3 +11,7 @@ from pathlib import Path
 
 # The repository's model_store/ (service/catalign/paths.py -> the repository root).
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "model_store"
+# Beside the general companions of the weights (``orientation/``, ``confidence/``), a weights
+# folder may hold a category's own: ``categories/<name>/orientation/`` and
+# ``categories/<name>/confidence/``, used where a query is answered from that category alone.
+CATEGORIES_DIR = "categories"

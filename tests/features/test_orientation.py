@@ -9,14 +9,17 @@ import numpy as np
 import pytest
 import torch
 
-from catalign.data.shapes import procedural_shape
+from catalign.data.shapes import Shape, procedural_shape
 from catalign.errors import ConfigError
 from catalign.features.orientation import (
     CARD_FILE,
     GRID,
+    HEADING_ANGLES,
+    HEADING_BINS,
     UP_DIRECTIONS,
     WEIGHTS_FILE,
     fibonacci_sphere,
+    find_category_orientations,
     find_orientation,
     load_orientation,
     occupancy_grids,
@@ -27,6 +30,8 @@ from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import random_rotation
 from catalign.training.orientation import (
     OrientationConfig,
+    ViewSet,
+    heading_labels,
     render_views,
     soft_labels,
     train_orientation,
@@ -218,3 +223,63 @@ def test_a_wider_up_network_starts_afresh_beside_the_kept_heading_network(
     # The heading network cannot be kept from a run whose heading network has another width.
     with pytest.raises(ConfigError, match="heading network is kept from init_from"):
         _one_step_run(tmp_path / "bad", networks="up", init_from=tmp_path / "first", width=8)
+
+
+def test_a_symmetric_shapes_heading_label_holds_every_equivalent_heading() -> None:
+    """A table that looks the same turned half way round is as right either way: its label
+    peaks at both headings; a round one is labelled uniformly; a chair at its one heading."""
+    heading = HEADING_ANGLES[3]
+    labels = heading_labels(np.full(4, heading), np.array([1, 2, 4, 0]), 10.0)
+
+    assert np.allclose(labels.sum(axis=1), 1.0)
+    plain = soft_labels(np.array([[np.cos(heading), np.sin(heading)]]), _circle(), 10.0)[0]
+    np.testing.assert_allclose(labels[0], plain)
+    half = HEADING_BINS // 2
+    for row, order in ((1, 2), (2, 4)):
+        step = HEADING_BINS // order
+        peaks_at = sorted(np.argsort(labels[row])[-order:].tolist())
+        assert peaks_at == sorted((3 + k * step) % HEADING_BINS for k in range(order))
+    assert labels[1][3] == pytest.approx(labels[1][3 + half])
+    np.testing.assert_allclose(labels[3], 1.0 / HEADING_BINS)
+
+
+def test_views_keep_the_symmetry_of_their_shape_and_old_caches_read_as_asymmetric(
+    tmp_path: Path,
+) -> None:
+    shapes = [procedural_shape(0), _square_box()]
+    views = render_views(
+        shapes, 2, seed=0, view_points=128, so3_share=0.0, floor_share=0.0, progress=False
+    )
+    assert views.orders.tolist() == [1, 1, 4, 4]
+    views.save(tmp_path / "views.npz")
+    np.testing.assert_array_equal(ViewSet.load(tmp_path / "views.npz").orders, views.orders)
+    np.savez(
+        tmp_path / "old.npz", points=views.points, counts=views.counts, rotations=views.rotations
+    )
+    assert ViewSet.load(tmp_path / "old.npz").orders.tolist() == [1, 1, 1, 1]
+
+
+def test_a_categorys_own_proposer_is_found_beside_the_general_one(tmp_path: Path) -> None:
+    assert find_category_orientations(tmp_path) == {}
+    _one_step_run(tmp_path / "orientation")
+    _one_step_run(tmp_path / "categories" / "table" / "orientation")
+    (tmp_path / "categories" / "bench").mkdir()  # a category with nothing of its own
+
+    found = find_category_orientations(tmp_path)
+    assert list(found) == ["table"]
+    card = json.loads((tmp_path / "categories" / "table" / "orientation" / CARD_FILE).read_text())
+    assert found["table"].card["sha256"] == card["sha256"]
+
+
+def _circle() -> np.ndarray:
+    return np.stack([np.cos(HEADING_ANGLES), np.sin(HEADING_ANGLES)], axis=1)
+
+
+def _square_box() -> Shape:
+    """A box 0.8 m square and 0.5 m tall (+Y up), sampled on its surface: a quarter turn maps
+    it onto itself."""
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-1, 1, size=(6000, 3))
+    axis = rng.integers(0, 3, len(points))
+    points[np.arange(len(points)), axis] = rng.choice([-1.0, 1.0], len(points))
+    return Shape(shape_id="box", points=points * np.array([0.4, 0.25, 0.4]) + [0, 0.25, 0])

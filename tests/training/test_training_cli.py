@@ -23,6 +23,8 @@ runner = CliRunner()
             "error: networks=up trains one network: the other needs init_from",
         ),
         (["train", "--curriculum", "backwards"], "error: --curriculum:"),
+        (["train-orientation", "--category", "sofa"], "error: --category: Input should be"),
+        (["calibrate", "--category", "sofa"], "no shared shapes of category 'sofa'"),
     ],
 )
 def test_a_refused_training_option_is_one_sentence(

@@ -34,6 +34,7 @@ from safetensors.torch import load_file
 from torch import Tensor, nn
 
 from catalign.features.weights import verified_card
+from catalign.paths import CATEGORIES_DIR
 
 GRID = 32
 UP_BINS = 256
@@ -233,6 +234,16 @@ def find_orientation(model_dir: Path) -> OrientationProposer | None:
     folder = model_dir / ORIENTATION_DIR
     shipped = (folder / WEIGHTS_FILE).is_file() or (folder / CARD_FILE).is_file()
     return load_orientation(folder) if shipped else None
+
+
+def find_category_orientations(model_dir: Path) -> dict[str, OrientationProposer]:
+    """The proposers trained for one category (``model_dir/categories/<name>/orientation/``),
+    by category name; empty when the folder ships none."""
+    found = {}
+    for folder in sorted((model_dir / CATEGORIES_DIR).glob(f"*/{ORIENTATION_DIR}")):
+        if (folder / WEIGHTS_FILE).is_file() or (folder / CARD_FILE).is_file():
+            found[folder.parent.name] = load_orientation(folder)
+    return found
 
 
 def load_orientation(directory: Path) -> OrientationProposer:

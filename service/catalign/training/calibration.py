@@ -246,7 +246,8 @@ def run(
     progress: bool = True,
     samples_files: Sequence[Path] = (),
 ) -> Calibrator:
-    """Collect samples on the training chairs with ``extractor`` (or read and join
+    """Collect samples on the training shapes of ``chairs`` (chairs or tables) with
+    ``extractor`` (or read and join
     ``samples_files``: single views from one run, reconstructions from another), fit, and save
     the calibrator and its samples to ``config.out``."""
     started = time.perf_counter()
@@ -261,7 +262,9 @@ def run(
         ids = list(chairs.ids("train"))
         ids = ids if config.max_shapes is None else ids[: config.max_shapes]
         samples = collect(config, metric_shapes(chairs, ids), extractor, progress)
-        source = f"{len(ids)} training chairs of the shared split (validation untouched)"
+        source = (
+            f"{len(ids)} training {chairs.category}s of the shared split (validation untouched)"
+        )
     samples.save(config.out / SAMPLES_FILE)
     fitted = fit(samples)
     probabilities = fitted.probabilities(samples.matrix())

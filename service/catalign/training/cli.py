@@ -250,12 +250,22 @@ def train_orientation(
             min=1, help="Up network width, if not 16 (afresh where --init-from's has another)."
         ),
     ] = ORIENTATION.up_width,
+    category: Annotated[
+        str,
+        typer.Option(
+            help="Shared shapes to train on: chair (with procedural chairs) or table; a table "
+            "run ships in model_store/categories/table/orientation/."
+        ),
+    ] = ORIENTATION.category,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
+    tables_dir: Annotated[
+        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
+    ] = None,
 ) -> None:
-    """Train the orientation proposal networks (up and heading) on views of training chairs."""
-    from catalign.data.shapes import SharedChairs
+    """Train the orientation proposal networks (up and heading) on views of training shapes."""
+    from catalign.data.shapes import shared_shapes
     from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
     from catalign.training.orientation import run
 
@@ -275,13 +285,16 @@ def train_orientation(
         fused_share=fused_share,
         so3_share=so3_share,
         up_width=up_width,
+        category=category,
     )
     with exit_on_error():
-        card = run(config, SharedChairs(chairs_dir))
+        root = chairs_dir if config.category == "chair" else tables_dir
+        card = run(config, shared_shapes(config.category, root))
     typer.echo(json.dumps(card["held_out_accuracy"], indent=2))
+    target = "" if config.category == "chair" else f"categories/{config.category}/"
     typer.echo(
         f"orientation model written to {out} (ship it: copy its {WEIGHTS_FILE} and "
-        f"{CARD_FILE} to model_store/orientation/)"
+        f"{CARD_FILE} to model_store/{target}orientation/)"
     )
 
 
@@ -310,8 +323,18 @@ def calibrate(
         Path | None,
         typer.Option(help="Weights whose answers are calibrated (default: model_store/)."),
     ] = None,
+    category: Annotated[
+        str,
+        typer.Option(
+            help="Shared shapes whose answers are calibrated: chair or table (a table "
+            "calibrator ships in model_store/categories/table/confidence/)."
+        ),
+    ] = CALIBRATION.category,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+    ] = None,
+    tables_dir: Annotated[
+        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
     ] = None,
     samples: Annotated[
         list[Path] | None,
@@ -320,8 +343,8 @@ def calibrate(
         ),
     ] = None,
 ) -> None:
-    """Fit the answers' confidence (boosted trees) on views of the training chairs."""
-    from catalign.data.shapes import SharedChairs
+    """Fit the answers' confidence (boosted trees) on views of the training shapes."""
+    from catalign.data.shapes import shared_shapes
     from catalign.features.extractor import LearnedExtractor
     from catalign.training.calibration import run
 
@@ -339,9 +362,11 @@ def calibrate(
             seed=seed,
             pose_modes=modes,
             max_shapes=max_shapes,  # type: ignore[arg-type]
+            category=category,
         )
         # A refit from saved samples needs no weights (nor their current calibrator).
         extractor = None if samples else LearnedExtractor(model_dir)
-        calibrator = run(config, SharedChairs(chairs_dir), extractor, samples_files=samples or ())
+        shapes = shared_shapes(category, chairs_dir if category == "chair" else tables_dir)
+        calibrator = run(config, shapes, extractor, samples_files=samples or ())
     typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
     typer.echo(f"calibrator written to {out}")

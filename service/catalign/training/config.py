@@ -82,8 +82,13 @@ class OrientationConfig(BaseModel):
     up_frame: Literal["view", "principal"] = Field(
         "view", description="the frame the up network sees a view in"
     )
+    category: Literal["chair", "table"] = Field(
+        "chair", description="the shared shapes trained on (their train split)"
+    )
     views_per_shape: int = Field(48, ge=1)
-    procedural: int = Field(60, ge=0, description="procedural chairs added to the shared ones")
+    procedural: int = Field(
+        60, ge=0, description="procedural chairs added to the shared ones (chairs only)"
+    )
     view_points: int = Field(2_048, ge=16, description="points kept per cached view")
     min_points: int = Field(300, ge=16, description="fewest points a training sample keeps")
     so3_share: float = Field(0.5, ge=0, le=1, description="views rendered in any rotation")
@@ -125,6 +130,7 @@ class OrientationConfig(BaseModel):
             + _unless_default(self, "fused_share", f" --fused-share {self.fused_share:g}")
             + _unless_default(self, "so3_share", f" --so3-share {self.so3_share:g}")
             + ("" if self.up_width is None else f" --up-width {self.up_width}")
+            + _unless_default(self, "category", f" --category {self.category}")
         )
 
 
@@ -145,6 +151,8 @@ class CalibrationConfig:
     seed: int = CALIBRATION_SEED
     pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
     max_shapes: int | None = None
+    # The shared shapes whose training split is registered: chair or table.
+    category: str = "chair"
 
     def command(self) -> str:
         modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
@@ -153,4 +161,5 @@ class CalibrationConfig:
             + (f" --fused-views {self.fused_views}" if self.fused_views else "")
             + f" --seed {self.seed} {modes}"
             + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
+            + ("" if self.category == "chair" else f" --category {self.category}")
         )

@@ -13,11 +13,14 @@ views go a long way:
   at random, and the label with it;
 * for the **heading** network, the view levelled by its true up tilted by up to
   ``tilt_deg`` (an imperfect up proposal, an imprecise IMU) and turned by a random yaw (label:
-  the yaw of the levelled chair).
+  the yaw of the levelled chair, and every yaw equivalent under the shape's symmetry about its
+  up: a rectangular table is as right turned half way round, a round one at any yaw).
 
 Labels are soft (a Gaussian of ``label_sigma_deg`` over the angle to the truth), and the loss is
 the cross-entropy against them. At the end, accuracy is measured on views of the validation
-chairs at a seed of their own, and written into the card beside the weights.
+shapes at a seed of their own, and written into the card beside the weights. A run trains for
+one category of the shared shapes (chairs, with procedural chairs added, or tables); the
+networks of another category than the general one ship in ``model_store/categories/<name>/``.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from tqdm import tqdm
 
 from catalign.data.camera import random_camera
 from catalign.data.reconstruction import reconstruct
-from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs, to_metric
+from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs
 from catalign.data.views import Floor, random_object_pose, render_view
 from catalign.errors import ConfigError
 from catalign.features.orientation import (
@@ -52,6 +55,7 @@ from catalign.features.orientation import (
 from catalign.frames import MODEL_UP
 from catalign.geometry.levelling import leveller, yaw_of, yaw_rotations
 from catalign.geometry.se3 import axis_angle, random_rotation
+from catalign.geometry.symmetry import find_yaw_symmetry
 from catalign.training.checkpoint import export_weights
 from catalign.training.config import OrientationConfig
 
@@ -62,21 +66,32 @@ HELD_OUT_SEED = 1_000
 @dataclass(frozen=True)
 class ViewSet:
     """Cached views: points (V,P,3) float32 in the world frame (the first ``counts[v]`` rows of
-    view ``v`` are distinct points, the rest repeat them) and each chair's model -> world
-    rotation (V,3,3)."""
+    view ``v`` are distinct points, the rest repeat them), each shape's model -> world rotation
+    (V,3,3) and the order of its symmetry about its up (V,: 1 none, n a turn of 360/n degrees,
+    0 any yaw; :class:`~catalign.geometry.symmetry.YawSymmetry`)."""
 
     points: np.ndarray
     counts: np.ndarray
     rotations: np.ndarray
+    orders: np.ndarray
 
     def save(self, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, points=self.points, counts=self.counts, rotations=self.rotations)
+        np.savez(
+            path,
+            points=self.points,
+            counts=self.counts,
+            rotations=self.rotations,
+            orders=self.orders,
+        )
 
     @classmethod
     def load(cls, path: Path) -> ViewSet:
+        """Views saved by :meth:`save`; a cache written before views kept their symmetry is
+        read as views of asymmetric shapes, as they were trained then."""
         with np.load(path) as data:
-            return cls(data["points"], data["counts"], data["rotations"])
+            orders = data["orders"] if "orders" in data else np.ones(len(data["counts"]), int)
+            return cls(data["points"], data["counts"], data["rotations"], orders)
 
 
 def render_views(
@@ -95,7 +110,8 @@ def render_views(
     them are reconstructions (:func:`~catalign.data.reconstruction.reconstruct`: fused from a
     camera trajectory, cut out loosely), as a mapping robot sends them (a ScanNet chair is seen
     from most sides, a single depth image from one)."""
-    points, counts, rotations = [], [], []
+    points, counts, rotations, orders = [], [], [], []
+    symmetries = [find_yaw_symmetry(shape.points).order for shape in shapes]
     jobs = [(s, v) for s in range(len(shapes)) for v in range(views_per_shape)]
     for s, v in tqdm(jobs, desc="render views", unit="view", disable=not progress):
         shape = shapes[s]
@@ -114,7 +130,8 @@ def render_views(
         points.append(seen[padded].astype(np.float32))
         counts.append(len(order))
         rotations.append(pose[:3, :3])
-    return ViewSet(np.stack(points), np.asarray(counts), np.stack(rotations))
+        orders.append(symmetries[s])
+    return ViewSet(np.stack(points), np.asarray(counts), np.stack(rotations), np.asarray(orders))
 
 
 def soft_labels(truth: np.ndarray, bins: np.ndarray, sigma_deg: float) -> np.ndarray:
@@ -123,6 +140,21 @@ def soft_labels(truth: np.ndarray, bins: np.ndarray, sigma_deg: float) -> np.nda
     angles = np.degrees(np.arccos(np.clip(truth @ bins.T, -1.0, 1.0)))
     weights = np.exp(-0.5 * (angles / sigma_deg) ** 2)
     return weights / weights.sum(axis=1, keepdims=True)
+
+
+def heading_labels(headings: np.ndarray, orders: np.ndarray, sigma_deg: float) -> np.ndarray:
+    """(B, HEADING_BINS) targets for true headings (B, radians) of shapes whose symmetry about
+    their up has ``orders`` (B): the mean of the soft labels of every equivalent heading, and
+    uniform for a shape that looks the same at any yaw (order 0)."""
+    circle = np.stack([np.cos(HEADING_ANGLES), np.sin(HEADING_ANGLES)], axis=1)
+    labels = np.full((len(headings), len(circle)), 1.0 / len(circle))
+    for row, (heading, order) in enumerate(zip(headings, orders, strict=True)):
+        if order == 0:
+            continue
+        turns = heading + 2 * np.pi * np.arange(order) / order
+        vectors = np.stack([np.cos(turns), np.sin(turns)], axis=1)
+        labels[row] = soft_labels(vectors, circle, sigma_deg).mean(axis=0)
+    return labels
 
 
 def tilted(direction: np.ndarray, max_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -137,7 +169,6 @@ def samples(
 ) -> tuple[list[np.ndarray], np.ndarray, list[np.ndarray], np.ndarray]:
     """One batch: rotated views with their true ups, and levelled views with their headings."""
     rotated, ups, levelled, headings = [], [], [], []
-    circle = np.stack([np.cos(HEADING_ANGLES), np.sin(HEADING_ANGLES)], axis=1)
     for row in rows:
         count = views.counts[row]
         keep = rng.integers(min(config.min_points, count), count + 1)
@@ -152,12 +183,11 @@ def samples(
         level = turn @ leveller(tilted(up, config.tilt_deg, rng))
         levelled.append(points @ level.T)
         headings.append(yaw_of(level @ views.rotations[row]))
-    heading_vectors = np.stack([np.cos(headings), np.sin(headings)], axis=1)
     return (
         rotated,
         soft_labels(np.stack(ups), UP_DIRECTIONS, config.label_sigma_deg),
         levelled,
-        soft_labels(heading_vectors, circle, config.label_sigma_deg),
+        heading_labels(np.asarray(headings), views.orders[rows], config.label_sigma_deg),
     )
 
 
@@ -241,7 +271,9 @@ def started_from(
 def proposal_accuracy(proposer: OrientationProposer, views: ViewSet) -> dict[str, float]:
     """Shares of ``views`` (as they are: no augmentation) whose true up is within 15 degrees of
     the top-1 and of any of the top-3 up proposals, and whose true heading, the view levelled by
-    its true up, is within 22.5 degrees of the top-1 and of either of the top-2 headings."""
+    its true up, is within 22.5 degrees of the top-1 and of either of the top-2 headings (of the
+    nearest heading equivalent under the shape's symmetry; any heading of a shape symmetric at
+    any yaw)."""
     up_hits = np.zeros((len(views.counts), 2), dtype=bool)
     heading_hits = np.zeros_like(up_hits)
     for row in range(len(views.counts)):
@@ -252,12 +284,22 @@ def proposal_accuracy(proposer: OrientationProposer, views: ViewSet) -> dict[str
         up_hits[row] = [within[0], any(within)]
         level = leveller(up)
         truth = yaw_of(level @ views.rotations[row])
+        order = int(views.orders[row])
         headings = [p.value for p in proposer.headings([points @ level.T], 2)[0]]
-        near = [abs(np.angle(np.exp(1j * (h - truth)))) <= np.radians(22.5) for h in headings]
+        near = [_heading_off(h, truth, order) <= np.radians(22.5) for h in headings]
         heading_hits[row] = [near[0], any(near)]
     shares = np.concatenate([up_hits.mean(axis=0), heading_hits.mean(axis=0)])
     names = ("up_top1", "up_top3", "heading_top1", "heading_top2")
     return {name: round(float(share), 4) for name, share in zip(names, shares, strict=True)}
+
+
+def _heading_off(heading: float, truth: float, order: int) -> float:
+    """Radians from ``heading`` to the nearest heading equivalent to ``truth`` under a symmetry
+    of ``order`` (0: any yaw, so none)."""
+    if order == 0:
+        return 0.0
+    step = 2 * np.pi / order
+    return float(abs((heading - truth + step / 2) % step - step / 2))
 
 
 def export_orientation(directory: Path, model: OrientationModel, card: dict[str, Any]) -> dict:
@@ -265,17 +307,19 @@ def export_orientation(directory: Path, model: OrientationModel, card: dict[str,
     return export_weights(directory, model, card, WEIGHTS_FILE, CARD_FILE)
 
 
-def run(config: OrientationConfig, chairs: SharedChairs, progress: bool = True) -> dict[str, Any]:
-    """The whole command: render (or reuse) the training views of the shared training chairs
-    and ``config.procedural`` procedural ones, and held-out views of the validation chairs at a
-    seed of their own; train; export."""
+def run(config: OrientationConfig, shared: SharedChairs, progress: bool = True) -> dict[str, Any]:
+    """The whole command: render (or reuse) the training views of the ``shared`` training
+    shapes (chairs or tables), with ``config.procedural`` procedural chairs beside chairs, and
+    held-out views of the validation shapes at a seed of their own; train; export."""
     cache = config.out / "views.npz"
-    train_ids, val_ids = chairs.ids("train"), chairs.ids("val")
+    train_ids, val_ids = shared.ids("train"), shared.ids("val")
+    category = shared.category
+    procedural = config.procedural if category == "chair" else 0
     if cache.is_file():
         views = ViewSet.load(cache)
     else:
-        shapes = [to_metric(chairs.load(i)) for i in train_ids]
-        shapes += list(ProceduralChairs(config.procedural))
+        shapes = [shared.metric(i) for i in train_ids]
+        shapes += list(ProceduralChairs(procedural))
         views = render_views(
             shapes,
             config.views_per_shape,
@@ -284,12 +328,15 @@ def run(config: OrientationConfig, chairs: SharedChairs, progress: bool = True) 
             **_rendering(config),
         )
         views.save(cache)
-    held_out_shapes = [to_metric(chairs.load(i)) for i in val_ids]
+    held_out_shapes = [shared.metric(i) for i in val_ids]
     held_out = render_views(held_out_shapes, 4, seed=HELD_OUT_SEED, **_rendering(config))
     data = {
-        "shared_train_chairs": len(train_ids),
-        "procedural_chairs": config.procedural,
-        "held_out": f"4 views of each of {len(val_ids)} validation chairs, seed {HELD_OUT_SEED}",
+        "category": category,
+        f"shared_train_{category}s": len(train_ids),
+        "procedural_chairs": procedural,
+        "symmetric_train_views": int((views.orders != 1).sum()),
+        "held_out": f"4 views of each of {len(val_ids)} validation {category}s, "
+        f"seed {HELD_OUT_SEED}",
     }
     return train_orientation(config, views, held_out, progress, data)
 
