@@ -4,12 +4,15 @@ fit, the candidates' best scores and the alternatives."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from catalign.data.views import WORLD_UP, upright_rotation
 from catalign.geometry.sampling import voxel_downsample
 from catalign.geometry.se3 import axis_angle, make_pose, rotation_error_deg, transform
+from catalign.registration.decision.confidence import Calibrator, Tree
 from catalign.registration.decision.finish import Finisher
 from catalign.registration.decision.rules import Finished, Found, Refined
 from catalign.registration.prepare.validation import CheckedCloud
@@ -88,3 +91,27 @@ def test_another_instance_is_stood_upright_by_the_category_fit(finisher, box_cha
     done = _finish(finisher, search, _posed(search, tilted, 0.5), [])
     pose = done.item.hypothesis.transform
     assert rotation_error_deg(pose[:3, :3], POSE[:3, :3]) < 1.0  # upright again
+
+
+@pytest.mark.parametrize(("own", "expected"), [("chair", 0.12), ("table", 0.88)])
+def test_a_category_with_its_own_calibrator_reads_its_models_answers_with_it(
+    finisher, box_chair, own: str, expected: float
+) -> None:
+    """The answer for a chair reads the chairs' own calibrator where one is given, and the
+    general one where only another category has its own."""
+    leaf = Tree(
+        feature=np.array([0]),
+        threshold=np.array([0.0]),
+        left=np.array([-1]),
+        right=np.array([-1]),
+        value=np.array([0.0]),
+    )
+    general = Calibrator(2.0, 0.1, (leaf,), card={})
+    of_category = Calibrator(-2.0, 0.1, (leaf,), card={})
+    finisher = replace(finisher, calibrator=general, calibrators={own: of_category})
+    keypoints, _ = voxel_downsample(transform(box_chair.points, POSE), VOXEL)
+    search = _search(finisher, keypoints)
+    item = _posed(search, POSE, 0.8)
+
+    done = _finish(finisher, search, item, [item])
+    assert done.confidence == pytest.approx(expected, abs=0.01)

@@ -10,11 +10,16 @@ import pytest
 from typer.testing import CliRunner
 
 from catalign.cli import app
-from catalign.data.shapes import SharedChairs, split_of, to_metric
+from catalign.data.shapes import SharedChairs, SharedTables, split_of, to_metric
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
-from catalign.registration.decision.confidence import SIGNALS, Calibrator, find_calibrator
+from catalign.registration.decision.confidence import (
+    SIGNALS,
+    Calibrator,
+    find_calibrator,
+    find_category_calibrators,
+)
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.registration.results import LibraryShape
 from catalign.training.calibration import BOOSTING, Samples, fit, plans
@@ -141,3 +146,23 @@ def test_the_exported_trees_give_scikit_learns_probabilities() -> None:
             calibrator.probabilities(x), reference.predict_proba(x)[:, 1], atol=1e-12
         )
     assert len(calibrator.trees) == BOOSTING["n_estimators"]
+
+
+@pytest.mark.slow
+def test_a_tables_calibrator_ships_beside_the_general_one_and_reads_tables(
+    tables_root: Path, tmp_path: Path
+) -> None:
+    """``--category table`` registers views of training tables; shipped in
+    ``categories/table/confidence/``, it is the one the engine finds for tables."""
+    if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
+        pytest.skip("model_store/ has no trained weights")
+    out = tmp_path / "weights" / "categories" / "table" / "confidence"
+    args = ["calibrate", "--out", str(out), "--views", "1", "--max-shapes", "2"]
+    args += ["--pose-mode", "upright", "--category", "table", "--tables-dir", str(tables_root)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+
+    card = find_category_calibrators(tmp_path / "weights")["table"].card
+    assert card["command"].endswith("--category table")
+    assert card["data"]["chairs"].startswith("2 training tables")
+    assert set(card["data"]["chair_ids"]) <= set(SharedTables(tables_root).ids("train"))

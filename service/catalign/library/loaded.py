@@ -56,6 +56,8 @@ class Library:
         self.descriptors = np.zeros((len(ordered), width), dtype=np.float32)
         self.sizes = np.zeros((len(ordered), 3), dtype=np.float64)
         self.categories = np.array([e.category for e in ordered], dtype=object)
+        held = {e.category for e in ordered}
+        self._only_category = held.pop() if len(held) == 1 else ""
         for row, entry in enumerate(ordered):
             self.descriptors[row] = entry.descriptor
             self.sizes[row] = entry.size
@@ -72,6 +74,10 @@ class Library:
         """How many entries each category holds, by name."""
         names, counts = np.unique(self.categories.astype(str), return_counts=True)
         return {str(name): int(count) for name, count in zip(names, counts, strict=True)}
+
+    def only_category(self) -> str:
+        """The category of every entry, or "" when the library holds several (or none)."""
+        return self._only_category
 
     def of_category(self, category: str | None) -> np.ndarray | None:
         """The rows (a mask over ``ids``) of ``category``'s entries; None for every entry

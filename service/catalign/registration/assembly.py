@@ -9,6 +9,7 @@ objects and can be built alone in tests. :func:`assemble` builds them all for th
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from catalign.library.loaded import Library
@@ -37,10 +38,16 @@ class Stages:
 
 
 def assemble(
-    config: EngineConfig, library: Library, *, voxel: float, calibrator: Calibrator | None
+    config: EngineConfig,
+    library: Library,
+    *,
+    voxel: float,
+    calibrator: Calibrator | None,
+    calibrators: Mapping[str, Calibrator] | None = None,
 ) -> Stages:
     """The stages for ``library`` and features of ``voxel`` metres: RANSAC and verification
-    inlier distances are ``config.ransac.factor`` voxels, ICP's ``config.icp.factor``."""
+    inlier distances are ``config.ransac.factor`` voxels, ICP's ``config.icp.factor``;
+    ``calibrators`` read the answers of their category's models in place of ``calibrator``."""
     distance = config.ransac.factor * voxel
     icp_distance = config.icp.factor * voxel
     verifier = build_verifier(config, library, distance=distance, voxel=voxel)
@@ -63,6 +70,7 @@ def assemble(
         icp_distance=icp_distance,
         exact_fitness=config.decision.exact_fitness,
         calibrator=calibrator,
+        calibrators=dict(calibrators or {}),
     )
     return Stages(verifier, searcher, refiner, build_rules(config), finisher)
 

@@ -52,10 +52,15 @@ import numpy as np
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
+from catalign.features.orientation import OrientationProposer, find_category_orientations
 from catalign.library.loaded import Library
 from catalign.registration.assembly import assemble
 from catalign.registration.config import EngineConfig
-from catalign.registration.decision.confidence import Calibrator, find_calibrator
+from catalign.registration.decision.confidence import (
+    Calibrator,
+    find_calibrator,
+    find_category_calibrators,
+)
 from catalign.registration.decision.rules import Decision, Found, Refined, decide
 from catalign.registration.prepare.detached import detached_mask
 from catalign.registration.prepare.orient import Oriented, orient
@@ -109,8 +114,11 @@ class Engine:
 
     ``config`` holds every option (:class:`EngineConfig`, its defaults when not given);
     ``calibrator`` reads each answer's confidence (by default the one beside the extractor's
-    weights; None: none); ``headings`` (the config's, else the extractor's), ``ransac_distance``
-    and ``icp_distance`` (metres) are what the engine made of it.
+    weights, and a category's own for its models' answers where the folder has one; None:
+    none). A query answered from one category alone (sent, or the library's only one) is
+    oriented by that category's own networks where the folder has them. ``headings`` (the
+    config's, else the extractor's), ``ransac_distance`` and ``icp_distance`` (metres) are what
+    the engine made of it.
     """
 
     def __init__(
@@ -128,15 +136,10 @@ class Engine:
         self.headings = extractor.headings if headings is None else headings
         self.ransac_distance = config.ransac.factor * voxel
         self.icp_distance = config.icp.factor * voxel
-        stages = assemble(
-            config, library, voxel=voxel, calibrator=_weights_calibrator(extractor, calibrator)
-        )
-        self.verifier, self.searcher, self.refiner = (
-            stages.verifier,
-            stages.searcher,
-            stages.refiner,
-        )
-        self.rules, self.finisher = stages.rules, stages.finisher
+        general, own, self.orientations = _companions(extractor, calibrator)
+        stages = assemble(config, library, voxel=voxel, calibrator=general, calibrators=own)
+        self.verifier, self.searcher = stages.verifier, stages.searcher
+        self.refiner, self.rules, self.finisher = stages.refiner, stages.rules, stages.finisher
 
     def register(
         self,
@@ -172,7 +175,11 @@ class Engine:
         k = config.top_k if top_k is None else top_k
         request = Request(k, estimate_scale, seed, clock, rows)
 
-        oriented, kept = self._oriented(cloud, up, clock)
+        # A query answered from one category is oriented by its own networks, where it has them.
+        proposer = self.orientations.get(
+            category or self.library.only_category(), self.extractor.orientation
+        )
+        oriented, kept = self._oriented(cloud, up, clock, proposer)
         searched = self._rounds(kept, oriented, request)
         # Without up, a chair's back or side under a wrong proposed up can pass for a floor
         # (1 to 3 of 54 so3 views a seed): set aside, it takes the part that would make the
@@ -180,7 +187,7 @@ class Engine:
         # that much), and an exact answer there wins.
         guessed_floor = up is None and oriented.floor.any() and cloud.voxels <= MAX_VOXELS
         if guessed_floor and self._doubts_floor(searched.decision):
-            bare, whole = self._oriented(cloud, up, clock, doubted=oriented)
+            bare, whole = self._oriented(cloud, up, clock, proposer, doubted=oriented)
             again = self._rounds(whole, bare, request)
             if self._fits_exactly(again.decision):
                 oriented, kept, searched = bare, whole, again
@@ -208,19 +215,20 @@ class Engine:
         cloud: CheckedCloud,
         up: np.ndarray | None,
         clock: StageClock,
+        proposer: OrientationProposer | None,
         *,
         doubted: Oriented | None = None,
     ) -> tuple[Oriented, CheckedCloud]:
-        """The ways up ``cloud`` may stand (given, or proposed), the floor under it and the
-        headings; and the cloud with the floor, then small clusters detached from the chair,
-        set aside. After a ``doubted`` look, no floor is sought and its proposed ups are
-        reused."""
+        """The ways up ``cloud`` may stand (given, or proposed by ``proposer``), the floor
+        under it and the headings; and the cloud with the floor, then small clusters detached
+        from the chair, set aside. After a ``doubted`` look, no floor is sought and its proposed
+        ups are reused."""
         config, voxel = self.config, self.extractor.voxel_size
         with clock("orient"):
             oriented = orient(
                 cloud.points,
                 up,
-                self.extractor.orientation,
+                proposer,
                 headings=self.headings,
                 voxel=voxel,
                 min_voxels=config.input.min_points,
@@ -343,6 +351,18 @@ class Engine:
 
         done = request.cache.refined_pose(item.scored.hypothesis, refine)
         return Refined(item, done.scored, done.parts, done.fit)
+
+
+def _companions(
+    extractor: FeatureExtractor, calibrator: Calibrator | FromWeights | None
+) -> tuple[Calibrator | None, dict[str, Calibrator], dict[str, OrientationProposer]]:
+    """The general calibrator (``calibrator``, or the weights folder's), the categories' own
+    calibrators (the folder's, unless one was given) and their own orientation proposals."""
+    folder = extractor.model_dir
+    if folder is None:
+        return _weights_calibrator(extractor, calibrator), {}, {}
+    own = find_category_calibrators(folder) if isinstance(calibrator, FromWeights) else {}
+    return _weights_calibrator(extractor, calibrator), own, find_category_orientations(folder)
 
 
 def _weights_calibrator(

@@ -27,6 +27,7 @@ from catalign.data.shapes import ProceduralChairs, Shape, Split
 from catalign.errors import ConfigError
 from catalign.features.orientation import ORIENTATION_DIR
 from catalign.features.resunet import build_model
+from catalign.paths import CATEGORIES_DIR
 from catalign.registration.decision.confidence import CALIBRATION_DIR
 from catalign.training.batches import pair_features
 from catalign.training.checkpoint import (
@@ -245,14 +246,15 @@ def train(
 
 # What serving reads beside the features' weights; a run started from shipped weights carries
 # them, so that its folder serves as ``--model-dir`` at once.
-COMPANIONS = (ORIENTATION_DIR, CALIBRATION_DIR)
+COMPANIONS = (ORIENTATION_DIR, CALIBRATION_DIR, CATEGORIES_DIR)
 
 
 def _carry_companions(init_from: Path, out: Path) -> list[str]:
-    """Copy the orientation networks and the calibrator of ``init_from`` into ``out`` (where it
-    has none of its own); the names of those carried. The orientation networks read occupancy,
-    not features, so they serve as they are; the calibrator was fitted on the old features'
-    scores and stays an estimate until ``catalign calibrate`` runs on the new ones."""
+    """Copy the orientation networks and the calibrator of ``init_from``, and those of its
+    categories, into ``out`` (where it has none of its own); the names of those carried. The
+    orientation networks read occupancy, not features, so they serve as they are; the
+    calibrator was fitted on the old features' scores and stays an estimate until ``catalign
+    calibrate`` runs on the new ones."""
     carried = []
     for name in COMPANIONS:
         if (init_from / name).is_dir() and not (out / name).exists():

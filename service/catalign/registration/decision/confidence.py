@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from catalign.errors import ConfigError
+from catalign.paths import CATEGORIES_DIR
 
 CALIBRATOR_FILE = "calibrator.json"
 # The calibrator's folder beside the feature weights it was fitted on.
@@ -235,3 +236,13 @@ def find_calibrator(model_dir: Path) -> Calibrator | None:
     """The calibrator stored with the weights in ``model_dir/confidence/``, if there is one."""
     path = model_dir / CALIBRATION_DIR / CALIBRATOR_FILE
     return Calibrator.load(path) if path.is_file() else None
+
+
+def find_category_calibrators(model_dir: Path) -> dict[str, Calibrator]:
+    """The calibrators fitted on one category's answers
+    (``model_dir/categories/<name>/confidence/``), by category name."""
+    pattern = f"*/{CALIBRATION_DIR}/{CALIBRATOR_FILE}"
+    return {
+        path.parent.parent.name: Calibrator.load(path)
+        for path in sorted((model_dir / CATEGORIES_DIR).glob(pattern))
+    }

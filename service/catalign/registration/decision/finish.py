@@ -10,8 +10,8 @@ probability that it is right from that evidence.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import KW_ONLY, dataclass, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import KW_ONLY, dataclass, field, replace
 
 import numpy as np
 
@@ -35,7 +35,8 @@ class Finisher:
     """Makes refined answers final against ``library`` models. ``icp_distance`` (metres) is
     the unit of the evidence's RMS distance; ``exact_fitness`` the fitness from which a model
     is taken to be the observed instance itself (no category fit); ``calibrator`` None gives
-    no confidence."""
+    no confidence; ``calibrators`` are those fitted on one category's answers, by category,
+    each reading the answers of its category's models in place of ``calibrator``."""
 
     library: Library
     refiner: Refiner
@@ -44,6 +45,7 @@ class Finisher:
     icp_distance: float
     exact_fitness: float
     calibrator: Calibrator | None
+    calibrators: Mapping[str, Calibrator] = field(default_factory=dict)
 
     def finish(
         self,
@@ -83,7 +85,7 @@ class Finisher:
             up_belief=search.orientation.belief,
             keypoints=len(search.keypoints),
         )
-        calibrator = self.calibrator
+        calibrator = self.calibrators.get(self.library[pose.model_id].category, self.calibrator)
         confidence = None if calibrator is None else calibrator.probability(evidence)
         return Finished(search, replace(item, hypothesis=pose), fit, evidence, confidence)
 
