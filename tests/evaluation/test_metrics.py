@@ -3,17 +3,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from catalign.data.views import WORLD_UP, upright_rotation
 from catalign.evaluation.metrics import (
     MATCH_TAU_M,
     PoseError,
     canonical_pose_error,
     match_accuracy,
+    proposal_hits,
     success_rates,
 )
 from catalign.evaluation.report import COLUMNS
+from catalign.geometry.levelling import leveller, yaw_of
 from catalign.geometry.ncc import NCCFrame
 from catalign.geometry.se3 import axis_angle, compose, make_pose, random_rotation, transform
 from catalign.geometry.symmetry import YawSymmetry
+from catalign.registration.results import Orientation
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -151,3 +155,19 @@ def test_success_rates_thresholds_are_strict_and_match_report_columns():
     assert rates["RRE<20"] == 100.0 and rates["RTE<10cm"] == 100.0
     assert set(rates) <= set(COLUMNS)
     assert success_rates([PoseError(0.0, 0.0)]) == dict.fromkeys(rates, 100.0)
+
+
+@pytest.mark.parametrize(
+    ("order", "turn_deg", "hit"),
+    [(1, 0, True), (1, 180, False), (2, 180, True), (2, 90, False), (4, 90, True), (0, 137, True)],
+)
+def test_a_heading_hits_when_the_shapes_symmetry_makes_it_equal_to_the_true_one(
+    order: int, turn_deg: float, hit: bool
+) -> None:
+    """A table that looks the same turned half way round is found at either heading."""
+    rotation = upright_rotation(0.7)
+    truth = yaw_of(leveller(WORLD_UP) @ rotation)
+    proposed = truth + np.radians(turn_deg)
+    searched = Orientation(WORLD_UP, False, (proposed, proposed), headings_proposed=True)
+    hits = proposal_hits((searched,), rotation, YawSymmetry(order))
+    assert hits["heading@1"] is hit and hits["heading@2"] is hit

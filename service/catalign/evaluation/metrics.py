@@ -81,13 +81,17 @@ def success_rates(errors: list[PoseError]) -> dict[str, float]:
 
 
 def proposal_hits(
-    orientations: tuple[Orientation, ...], rotation_gt: np.ndarray
+    orientations: tuple[Orientation, ...],
+    rotation_gt: np.ndarray,
+    symmetry: YawSymmetry = NO_SYMMETRY,
 ) -> dict[str, bool | None]:
     """Whether the true up (of the observed chair under ``rotation_gt``) is within
     :data:`UP_TOLERANCE_DEG` of the first and of any of the first three estimated ups, and the
-    true heading within :data:`HEADING_TOLERANCE_DEG` of the first and of either of the first
-    two proposed headings, under the searched up nearest the true one (a miss when none is
-    within the up tolerance). None where nothing was estimated or proposed."""
+    true heading (the nearest one the observed shape's ``symmetry`` makes equal; any heading
+    for a shape that looks the same at any yaw) within :data:`HEADING_TOLERANCE_DEG` of the
+    first and of either of the first two proposed headings, under the searched up nearest the
+    true one (a miss when none is within the up tolerance). None where nothing was estimated
+    or proposed."""
     true_up = rotation_gt @ MODEL_UP
     ups = [o for o in orientations if o.up is not None]
     angles = [np.degrees(np.arccos(np.clip(o.up @ true_up, -1.0, 1.0))) for o in ups]
@@ -104,7 +108,11 @@ def proposal_hits(
     if angles[nearest] > UP_TOLERANCE_DEG:
         return hits | {"heading@1": False, "heading@2": False}
     truth = yaw_of(leveller(ups[nearest].up) @ rotation_gt)
-    off = [abs(np.angle(np.exp(1j * (h - truth)))) for h in ups[nearest].headings]
+    # Radians to the nearest equivalent heading (a turn of ``step`` maps the shape onto itself).
+    step = 2 * np.pi / max(symmetry.order, 1)
+    off = [abs((h - truth + step / 2) % step - step / 2) for h in ups[nearest].headings]
+    if symmetry.continuous:
+        off = [0.0 for _ in off]
     near = [np.degrees(o) <= HEADING_TOLERANCE_DEG for o in off]
     return hits | {"heading@1": bool(near[0]), "heading@2": bool(any(near[:2]))}
 

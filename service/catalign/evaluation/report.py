@@ -80,7 +80,7 @@ def summarise(
                 *result.correspondences, model_frame, case.pose, observed_frame
             )
             accuracies.append(accuracy)
-        hit = proposal_hits(result.orientations, case.pose[:3, :3])
+        hit = proposal_hits(result.orientations, case.pose[:3, :3], symmetry)
         hits.append(hit)
         alternatives = [
             {
