@@ -30,7 +30,6 @@ from catalign.data.views import WORLD_UP
 from catalign.evaluation.metrics import auroc
 from catalign.evaluation.protocol import TestCase, build_cases, frames_of, symmetries_of
 from catalign.features.extractor import LearnedExtractor
-from catalign.registration.decision.confidence import find_calibrator
 from catalign.registration.engine import Engine
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.registration.results import LibraryShape
@@ -51,7 +50,6 @@ def main() -> None:
     limit_threads(args.threads, total=args.threads)
 
     extractor = LearnedExtractor(args.model_dir) if args.model_dir else LearnedExtractor()
-    calibrator = find_calibrator(extractor.model_dir)
     sources = {"chair": SharedChairs(None), "table": SharedTables(None)}
     shapes = {
         (category, split): {i: source.metric(i) for i in source.ids(split)}
@@ -67,7 +65,7 @@ def main() -> None:
     }
 
     def engine_for(split: str, categories: tuple[str, ...]) -> Engine:
-        registrar = IndexedRegistrar(extractor, calibrator=calibrator, name="learned")
+        registrar = IndexedRegistrar(extractor, name="learned")
         library = [
             LibraryShape(i, s.points, s.mesh, category)
             for category in categories

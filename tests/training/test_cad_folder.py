@@ -52,7 +52,9 @@ def test_a_new_category_trains_from_the_shipped_weights(
     assert sum(card["training_data"]["categories"].values()) == len(BENCH_SEEDS) - 1
     assert card["training"]["model"] == shipped["training"]["model"]  # read from the card
     assert card["voxel_size"] == shipped["voxel_size"]
-    assert card["carried_from_init"] == ["orientation", "confidence"]
+    # The shipped tables' own orientation networks and calibrator come along too.
+    assert card["carried_from_init"] == ["orientation", "confidence", "categories"]
+    assert (out / "categories" / "table" / "confidence" / "calibrator.json").is_file()
 
     # The run's folder serves at once: a library built with it answers a bench's view.
     library = tmp_path / "library"
