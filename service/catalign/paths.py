@@ -15,3 +15,11 @@ DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "model_store"
 # folder may hold a category's own: ``categories/<name>/orientation/`` and
 # ``categories/<name>/confidence/``, used where a query is answered from that category alone.
 CATEGORIES_DIR = "categories"
+
+
+def category_companions(model_dir: Path) -> dict[str, list[str]]:
+    """The categories with companions of their own in ``model_dir`` and which (``orientation``,
+    ``confidence``), by category name: what ``/info`` reports beside the model card."""
+    root = model_dir / CATEGORIES_DIR
+    folders = sorted(f for f in root.iterdir() if f.is_dir()) if root.is_dir() else []
+    return {f.name: sorted(p.name for p in f.iterdir() if p.is_dir()) for f in folders}

@@ -16,6 +16,7 @@ import pytest
 
 from catalign.api import catalign_pb2, catalign_pb2_grpc, health_pb2, health_pb2_grpc
 from catalign.geometry.se3 import rotation_error_deg
+from catalign.paths import DEFAULT_MODEL_DIR
 from catalign.registration.engine import STAGES as ENGINE_STAGES
 
 if TYPE_CHECKING:
@@ -180,6 +181,12 @@ def test_info_describes_what_is_served(client: httpx.Client, server: Server) -> 
     served["orient"]["headings"] = info["headings"]  # resolved for the weights
     assert info["engine"] == served
     assert set(info["versions"]) == {"python", "torch", "open3d", "numpy"}
+    if server.settings.model_dir.resolve() == DEFAULT_MODEL_DIR.resolve():
+        assert info["categories"] == {"table": ["confidence", "orientation"]}
+    else:
+        assert set(info["categories"]) == {
+            f.name for f in (server.settings.model_dir / "categories").glob("*/")
+        }
 
 
 def test_the_answer_reports_the_up_it_used_and_the_floor_it_set_aside(

@@ -353,6 +353,11 @@ class Versions(BaseModel):
 class InfoResponse(BaseModel):
     version: str
     model_card: dict[str, JsonData] = Field(description="The weights' model card.")
+    categories: dict[str, list[str]] = Field(
+        description="The categories served with networks of their own (``orientation``: up and "
+        "heading proposals, ``confidence``: the calibrator), trained on that category's shapes; "
+        "every other category is served by the general ones."
+    )
     library: LibraryInfo
     voxel_size: float
     headings: int

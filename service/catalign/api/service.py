@@ -39,6 +39,7 @@ from catalign.api.spool import Spool
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError
 from catalign.library.store import manifest_stamp
+from catalign.paths import category_companions
 from catalign.registration.config import served_config
 from catalign.threads import limit_threads, release_free_memory
 
@@ -214,14 +215,14 @@ class RegistrationService:
         import open3d
         import torch
 
-        served = self.served
+        served, extractor = self.served, self.served.extractor
         manifest = served.library.manifest
-        extractor = served.extractor
         config = served_config(self.settings.engine, manifest.engine)
         headings = config.orient.headings or extractor.headings
         return InfoResponse(
             version=catalign.__version__,
             model_card=extractor.card,
+            categories=category_companions(extractor.model_dir),
             library=LibraryInfo(
                 path=str(self.settings.library),
                 format_version=manifest.format_version,
