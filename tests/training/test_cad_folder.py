@@ -18,6 +18,7 @@ from catalign.features.extractor import LearnedExtractor
 from catalign.geometry.se3 import make_pose
 from catalign.library.loaded import load
 from catalign.paths import DEFAULT_MODEL_DIR
+from catalign.registration.decision.confidence import Calibrator
 from catalign.registration.engine import Engine
 from catalign.training.cad_folder import cad_folders
 
@@ -56,6 +57,24 @@ def test_a_new_category_trains_from_the_shipped_weights(
     assert card["carried_from_init"] == ["orientation", "confidence", "categories"]
     assert (out / "categories" / "table" / "confidence" / "calibrator.json").is_file()
 
+    # The same folder trains the benches' own orientation networks and calibrator, beside the
+    # run's weights, where a query answered from benches alone finds them.
+    own = out / "categories" / "bench"
+    folder = ["--data", str(benches), "--units", "cm", "--category", "bench"]
+    orientation = ["train-orientation", *folder, "--steps", "2", "--views-per-shape", "2"]
+    orientation += ["--init-from", str(DEFAULT_MODEL_DIR / "orientation"), "--networks", "heading"]
+    result = runner.invoke(app, [*orientation, "--out", str(own / "orientation")])
+    assert result.exit_code == 0, result.output
+    assert "model_store/categories/bench/orientation/" in result.output
+    calibrate = ["calibrate", *folder, "--views", "1", "--pose-mode", "upright"]
+    result = runner.invoke(
+        app, [*calibrate, "--model-dir", str(out), "--out", str(own / "confidence")]
+    )
+    assert result.exit_code == 0, result.output
+    oriented = json.loads((own / "orientation" / "orientation_card.json").read_text())
+    assert oriented["training"]["category"] == "bench"
+    assert oriented["training_data"]["train_benchs"] == len(BENCH_SEEDS) - 1
+
     # The run's folder serves at once: a library built with it answers a bench's view.
     library = tmp_path / "library"
     build = ["library", "build", str(benches), "--units", "cm", "--model-dir", str(out)]
@@ -70,6 +89,9 @@ def test_a_new_category_trains_from_the_shipped_weights(
     points = render_view(shape, pose, camera, np.random.default_rng(1))
     answer = engine.register(points, up=np.array([0.0, 0.0, 1.0]), category="bench")
     assert answer.category == "bench" and answer.confidence is not None
+    assert sorted(engine.orientations) == ["bench", "table"]
+    benches_own = Calibrator.load(own / "confidence" / "calibrator.json")
+    assert answer.confidence == pytest.approx(benches_own.probability(answer.evidence))
 
 
 def test_the_folder_is_read_in_metres(benches: Path) -> None:

@@ -23,7 +23,8 @@ runner = CliRunner()
             "error: networks=up trains one network: the other needs init_from",
         ),
         (["train", "--curriculum", "backwards"], "error: --curriculum:"),
-        (["train-orientation", "--category", "sofa"], "error: --category: Input should be"),
+        (["train-orientation", "--category", "sofa"], "no shared shapes of category 'sofa'"),
+        (["train-orientation", "--category", "Big Sofa"], "error: --category: String should"),
         (["calibrate", "--category", "sofa"], "no shared shapes of category 'sofa'"),
     ],
 )

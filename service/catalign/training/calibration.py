@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from catalign.data.shapes import Shape, SharedChairs
+from catalign.data.shapes import Shape
 from catalign.data.views import WORLD_UP
 from catalign.errors import ConfigError, InvalidInputError
 from catalign.evaluation.metrics import (
@@ -56,6 +56,7 @@ from catalign.registration.decision.confidence import (
 from catalign.registration.indexed import IndexedRegistrar
 from catalign.registration.results import LibraryShape, RegistrationResult
 from catalign.training.config import CalibrationConfig
+from catalign.training.loop import ShapeSource
 
 SAMPLES_FILE = "samples.npz"
 # The trees: 200 of depth 3 (8 leaves at most), each leaf holding 20 answers or more. Set before
@@ -241,7 +242,7 @@ def calibration_quality(probabilities: Sequence[float], right: Sequence[bool]) -
 
 def run(
     config: CalibrationConfig,
-    chairs: SharedChairs,
+    chairs: ShapeSource,
     extractor: FeatureExtractor | None,
     progress: bool = True,
     samples_files: Sequence[Path] = (),

@@ -20,6 +20,12 @@ if TYPE_CHECKING:
     from catalign.training.loop import ShapeSource
 
 TRAIN, ORIENTATION, CALIBRATION = TrainConfig(), OrientationConfig(), CalibrationConfig()
+# The options naming a user's CAD folder of one category, as train-orientation and calibrate
+# take them.
+CategoryFolder = Annotated[
+    Path | None, typer.Option(help="Your own canonically aligned CAD files (+Y up) of --category.")
+]
+FolderUnits = Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")]
 
 
 def neighbours(
@@ -173,6 +179,19 @@ def initial_architecture(init_from: Path | None) -> dict[str, object]:
     return {k: training[k] for k in ("model", "conv1_kernel_size", "voxel_size") if k in training}
 
 
+def one_category(
+    category: str,
+    data: Path | None,
+    units: str,
+    chairs_dir: Path | None,
+    tables_dir: Path | None,
+) -> ShapeSource:
+    """The shapes of ``category`` that ``train-orientation`` and ``calibrate`` learn from: the
+    shared chairs or tables, or all of a user's folder ``data`` taken as that category."""
+    sources = training_sources([category], data, units, chairs_dir, tables_dir)
+    return sources[category]
+
+
 def training_sources(
     category: list[str] | None,
     data: Path | None,
@@ -253,10 +272,13 @@ def train_orientation(
     category: Annotated[
         str,
         typer.Option(
-            help="Shared shapes to train on: chair (with procedural chairs) or table; a table "
-            "run ships in model_store/categories/table/orientation/."
+            help="Category to train on: the shared chairs (with procedural chairs) or tables, "
+            "or --data's; a run for another category than chair ships in "
+            "model_store/categories/NAME/orientation/."
         ),
     ] = ORIENTATION.category,
+    data: CategoryFolder = ORIENTATION.data,
+    units: FolderUnits = ORIENTATION.units,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -265,7 +287,6 @@ def train_orientation(
     ] = None,
 ) -> None:
     """Train the orientation proposal networks (up and heading) on views of training shapes."""
-    from catalign.data.shapes import shared_shapes
     from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
     from catalign.training.orientation import run
 
@@ -286,10 +307,12 @@ def train_orientation(
         so3_share=so3_share,
         up_width=up_width,
         category=category,
+        data=data,
+        units=units,
     )
     with exit_on_error():
-        root = chairs_dir if config.category == "chair" else tables_dir
-        card = run(config, shared_shapes(config.category, root))
+        shapes = one_category(category, data, units, chairs_dir, tables_dir)
+        card = run(config, shapes)
     typer.echo(json.dumps(card["held_out_accuracy"], indent=2))
     target = "" if config.category == "chair" else f"categories/{config.category}/"
     typer.echo(
@@ -326,10 +349,13 @@ def calibrate(
     category: Annotated[
         str,
         typer.Option(
-            help="Shared shapes whose answers are calibrated: chair or table (a table "
-            "calibrator ships in model_store/categories/table/confidence/)."
+            help="Category whose answers are calibrated: the shared chairs or tables, or "
+            "--data's (another category than chair ships in "
+            "model_store/categories/NAME/confidence/)."
         ),
     ] = CALIBRATION.category,
+    data: CategoryFolder = CALIBRATION.data,
+    units: FolderUnits = CALIBRATION.units,
     chairs_dir: Annotated[
         Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
     ] = None,
@@ -344,7 +370,6 @@ def calibrate(
     ] = None,
 ) -> None:
     """Fit the answers' confidence (boosted trees) on views of the training shapes."""
-    from catalign.data.shapes import shared_shapes
     from catalign.features.extractor import LearnedExtractor
     from catalign.training.calibration import run
 
@@ -363,10 +388,12 @@ def calibrate(
             pose_modes=modes,
             max_shapes=max_shapes,  # type: ignore[arg-type]
             category=category,
+            data=data,
+            units=units,
         )
         # A refit from saved samples needs no weights (nor their current calibrator).
         extractor = None if samples else LearnedExtractor(model_dir)
-        shapes = shared_shapes(category, chairs_dir if category == "chair" else tables_dir)
+        shapes = one_category(category, data, units, chairs_dir, tables_dir)
         calibrator = run(config, shapes, extractor, samples_files=samples or ())
     typer.echo(json.dumps(calibrator.card["in_sample"], indent=2))
     typer.echo(f"calibrator written to {out}")

@@ -82,9 +82,15 @@ class OrientationConfig(BaseModel):
     up_frame: Literal["view", "principal"] = Field(
         "view", description="the frame the up network sees a view in"
     )
-    category: Literal["chair", "table"] = Field(
-        "chair", description="the shared shapes trained on (their train split)"
+    category: str = Field(
+        "chair",
+        pattern=r"^[a-z][a-z0-9_-]{0,31}$",
+        description="the category trained on: shared chairs or tables, or data's",
     )
+    data: Path | None = Field(
+        None, description="a user's CAD folder of that category instead of the shared shapes"
+    )
+    units: str = Field("m", description="units of the data files")
     views_per_shape: int = Field(48, ge=1)
     procedural: int = Field(
         60, ge=0, description="procedural chairs added to the shared ones (chairs only)"
@@ -131,6 +137,7 @@ class OrientationConfig(BaseModel):
             + _unless_default(self, "so3_share", f" --so3-share {self.so3_share:g}")
             + ("" if self.up_width is None else f" --up-width {self.up_width}")
             + _unless_default(self, "category", f" --category {self.category}")
+            + ("" if self.data is None else f" --data {self.data} --units {self.units}")
         )
 
 
@@ -151,8 +158,11 @@ class CalibrationConfig:
     seed: int = CALIBRATION_SEED
     pose_modes: tuple[PoseMode, ...] = ("upright", "so3")
     max_shapes: int | None = None
-    # The shared shapes whose training split is registered: chair or table.
+    # The category whose training split is registered: the shared chairs or tables, or the
+    # shapes of a user's CAD folder (``data``, in ``units``).
     category: str = "chair"
+    data: Path | None = None
+    units: str = "m"
 
     def command(self) -> str:
         modes = " ".join(f"--pose-mode {m}" for m in self.pose_modes)
@@ -162,4 +172,5 @@ class CalibrationConfig:
             + f" --seed {self.seed} {modes}"
             + ("" if self.max_shapes is None else f" --max-shapes {self.max_shapes}")
             + ("" if self.category == "chair" else f" --category {self.category}")
+            + ("" if self.data is None else f" --data {self.data} --units {self.units}")
         )

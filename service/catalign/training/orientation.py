@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from catalign.data.camera import random_camera
 from catalign.data.reconstruction import reconstruct
-from catalign.data.shapes import ProceduralChairs, Shape, SharedChairs
+from catalign.data.shapes import ProceduralChairs, Shape
 from catalign.data.views import Floor, random_object_pose, render_view
 from catalign.errors import ConfigError
 from catalign.features.orientation import (
@@ -58,6 +58,7 @@ from catalign.geometry.se3 import axis_angle, random_rotation
 from catalign.geometry.symmetry import find_yaw_symmetry
 from catalign.training.checkpoint import export_weights
 from catalign.training.config import OrientationConfig
+from catalign.training.loop import ShapeSource
 
 # Held-out views are rendered at their own seed, never one the evaluation uses (0, 1).
 HELD_OUT_SEED = 1_000
@@ -307,10 +308,11 @@ def export_orientation(directory: Path, model: OrientationModel, card: dict[str,
     return export_weights(directory, model, card, WEIGHTS_FILE, CARD_FILE)
 
 
-def run(config: OrientationConfig, shared: SharedChairs, progress: bool = True) -> dict[str, Any]:
+def run(config: OrientationConfig, shared: ShapeSource, progress: bool = True) -> dict[str, Any]:
     """The whole command: render (or reuse) the training views of the ``shared`` training
-    shapes (chairs or tables), with ``config.procedural`` procedural chairs beside chairs, and
-    held-out views of the validation shapes at a seed of their own; train; export."""
+    shapes (the shared chairs or tables, or a user's CAD folder), with ``config.procedural``
+    procedural chairs beside chairs, and held-out views of the validation shapes at a seed of
+    their own; train; export."""
     cache = config.out / "views.npz"
     train_ids, val_ids = shared.ids("train"), shared.ids("val")
     category = shared.category
@@ -330,9 +332,10 @@ def run(config: OrientationConfig, shared: SharedChairs, progress: bool = True) 
         views.save(cache)
     held_out_shapes = [shared.metric(i) for i in val_ids]
     held_out = render_views(held_out_shapes, 4, seed=HELD_OUT_SEED, **_rendering(config))
+    counted = f"shared_train_{category}s" if config.data is None else f"train_{category}s"
     data = {
         "category": category,
-        f"shared_train_{category}s": len(train_ids),
+        counted: len(train_ids),
         "procedural_chairs": procedural,
         "symmetric_train_views": int((views.orders != 1).sum()),
         "held_out": f"4 views of each of {len(val_ids)} validation {category}s, "
