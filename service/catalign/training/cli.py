@@ -26,13 +26,17 @@ CategoryFolder = Annotated[
     Path | None, typer.Option(help="Your own canonically aligned CAD files (+Y up) of --category.")
 ]
 FolderUnits = Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")]
+ChairsFolder = Annotated[
+    Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+]
+TablesFolder = Annotated[
+    Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
+]
 
 
 def neighbours(
     k: Annotated[int, typer.Option(min=1, help="Neighbours per shape.")] = 3,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
+    chairs_dir: ChairsFolder = None,
 ) -> None:
     """Print each shared chair's nearest training chairs by EMD in NCC (cached on disk)."""
     from catalign.data.neighbours import shape_neighbours
@@ -119,12 +123,8 @@ def train(
     units: Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")] = (
         TRAIN.units
     ),
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-    tables_dir: Annotated[
-        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
-    ] = None,
+    chairs_dir: ChairsFolder = None,
+    tables_dir: TablesFolder = None,
 ) -> None:
     """Train the feature extractor; an interrupted run continues from its last checkpoint."""
     from catalign.training.loop import train as run_training
@@ -279,12 +279,8 @@ def train_orientation(
     ] = ORIENTATION.category,
     data: CategoryFolder = ORIENTATION.data,
     units: FolderUnits = ORIENTATION.units,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-    tables_dir: Annotated[
-        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
-    ] = None,
+    chairs_dir: ChairsFolder = None,
+    tables_dir: TablesFolder = None,
 ) -> None:
     """Train the orientation proposal networks (up and heading) on views of training shapes."""
     from catalign.features.orientation import CARD_FILE, WEIGHTS_FILE
@@ -356,12 +352,8 @@ def calibrate(
     ] = CALIBRATION.category,
     data: CategoryFolder = CALIBRATION.data,
     units: FolderUnits = CALIBRATION.units,
-    chairs_dir: Annotated[
-        Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-    ] = None,
-    tables_dir: Annotated[
-        Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
-    ] = None,
+    chairs_dir: ChairsFolder = None,
+    tables_dir: TablesFolder = None,
     samples: Annotated[
         list[Path] | None,
         typer.Option(
