@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from types import MappingProxyType
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ class RecordingExtractor:
     fingerprint = "recording"
     headings = 1
     orientation = None
+    category_orientations = MappingProxyType({})
 
     def __init__(self) -> None:
         self.passes: list[int] = []

@@ -8,15 +8,20 @@ another, because its stored features would not be comparable.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Protocol
 
 import numpy as np
 import torch
 
-from catalign.features.orientation import OrientationProposer, find_orientation
+from catalign.features.orientation import (
+    OrientationProposer,
+    find_category_orientations,
+    find_orientation,
+)
 from catalign.paths import DEFAULT_MODEL_DIR
 
 
@@ -31,14 +36,15 @@ class Described:
 class FeatureExtractor(Protocol):
     """What registration and the library need of an extractor: its voxel size, its fingerprint,
     how many headings a query must be described at, the orientation proposals that choose them
-    (None: every heading, and no up is proposed), the folder of its weights (None for a
-    descriptor without any; the engine reads the answers' calibrator there), and the description
-    itself."""
+    (None: every heading, and no up is proposed) and those of single categories, the folder of
+    its weights (None for a descriptor without any; the engine reads the answers' calibrator
+    there), and the description itself."""
 
     voxel_size: float
     fingerprint: str
     headings: int
     orientation: OrientationProposer | None
+    category_orientations: Mapping[str, OrientationProposer]
     model_dir: Path | None
 
     def describe(self, points: np.ndarray) -> Described: ...
@@ -51,8 +57,10 @@ class LearnedExtractor:
 
     ``headings`` is how many headings a query must be tried at: 8 for a model trained on
     ``yaw-bin`` rotations (it only knows headings within 22.5 degrees), 4 for ``yaw-quarter``,
-    else 1. ``orientation`` is the proposer in the folder's ``orientation/``, when it has one;
-    ``model_dir`` the folder itself (its ``confidence/`` calibrator is the engine's to read).
+    else 1. ``orientation`` is the proposer in the folder's ``orientation/``, when it has one,
+    and ``category_orientations`` those of its ``categories/<name>/orientation/`` (loaded once
+    for every engine the process builds); ``model_dir`` the folder itself (its ``confidence/``
+    calibrator is the engine's to read).
     """
 
     def __init__(self, model_dir: Path | None = None, threads: int | None = None) -> None:
@@ -64,6 +72,7 @@ class LearnedExtractor:
         rotation = self.card.get("training", {}).get("rotation", "upright")
         self.headings = YAW_BINS.get(rotation, 1)
         self.orientation = find_orientation(model_dir or DEFAULT_MODEL_DIR)
+        self.category_orientations = find_category_orientations(model_dir or DEFAULT_MODEL_DIR)
         self.model_dir = model_dir or DEFAULT_MODEL_DIR
         if threads is not None:
             torch.set_num_threads(threads)
@@ -90,6 +99,7 @@ class FPFHExtractor:
 
     headings = 1  # rotation-invariant: one heading describes every heading
     orientation = None
+    category_orientations: Mapping[str, OrientationProposer] = MappingProxyType({})
     model_dir = None
 
     def __init__(self, voxel_size: float = FPFH_VOXEL) -> None:

@@ -52,7 +52,7 @@ import numpy as np
 from catalign.deadline import Deadline
 from catalign.errors import DegenerateInputError
 from catalign.features.extractor import FeatureExtractor
-from catalign.features.orientation import OrientationProposer, find_category_orientations
+from catalign.features.orientation import OrientationProposer
 from catalign.library.loaded import Library
 from catalign.registration.assembly import assemble
 from catalign.registration.config import EngineConfig
@@ -136,7 +136,8 @@ class Engine:
         self.headings = extractor.headings if headings is None else headings
         self.ransac_distance = config.ransac.factor * voxel
         self.icp_distance = config.icp.factor * voxel
-        general, own, self.orientations = _companions(extractor, calibrator)
+        general, own = _calibrators(extractor, calibrator)
+        self.orientations = extractor.category_orientations
         stages = assemble(config, library, voxel=voxel, calibrator=general, calibrators=own)
         self.verifier, self.searcher = stages.verifier, stages.searcher
         self.refiner, self.rules, self.finisher = stages.refiner, stages.rules, stages.finisher
@@ -353,16 +354,15 @@ class Engine:
         return Refined(item, done.scored, done.parts, done.fit)
 
 
-def _companions(
+def _calibrators(
     extractor: FeatureExtractor, calibrator: Calibrator | FromWeights | None
-) -> tuple[Calibrator | None, dict[str, Calibrator], dict[str, OrientationProposer]]:
-    """The general calibrator (``calibrator``, or the weights folder's), the categories' own
-    calibrators (the folder's, unless one was given) and their own orientation proposals."""
+) -> tuple[Calibrator | None, dict[str, Calibrator]]:
+    """The general calibrator (``calibrator``, or the weights folder's) and the categories' own
+    (the folder's, unless one was given)."""
     folder = extractor.model_dir
-    if folder is None:
-        return _weights_calibrator(extractor, calibrator), {}, {}
-    own = find_category_calibrators(folder) if isinstance(calibrator, FromWeights) else {}
-    return _weights_calibrator(extractor, calibrator), own, find_category_orientations(folder)
+    weights = isinstance(calibrator, FromWeights) and folder is not None
+    own = find_category_calibrators(folder) if weights else {}
+    return _weights_calibrator(extractor, calibrator), own
 
 
 def _weights_calibrator(

@@ -263,9 +263,7 @@ def run(
         ids = list(chairs.ids("train"))
         ids = ids if config.max_shapes is None else ids[: config.max_shapes]
         samples = collect(config, metric_shapes(chairs, ids), extractor, progress)
-        source = (
-            f"{len(ids)} training {chairs.category}s of the shared split (validation untouched)"
-        )
+        source = f"{len(ids)} training {chairs.category}s of the split (validation untouched)"
     samples.save(config.out / SAMPLES_FILE)
     fitted = fit(samples)
     probabilities = fitted.probabilities(samples.matrix())

@@ -84,7 +84,7 @@ class OrientationConfig(BaseModel):
     )
     category: str = Field(
         "chair",
-        pattern=r"^[a-z][a-z0-9_-]{0,31}$",
+        pattern=f"^{CATEGORY_PATTERN.pattern}$",
         description="the category trained on: shared chairs or tables, or data's",
     )
     data: Path | None = Field(
