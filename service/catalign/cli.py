@@ -15,7 +15,13 @@ import typer
 from catalign.cli_support import EngineOptions, exit_on_error
 from catalign.errors import ConfigError
 from catalign.library.cli import app as library_app
-from catalign.training.cli import calibrate, neighbours, train, train_orientation
+from catalign.training.cli import (
+    calibrate,
+    neighbours,
+    train,
+    train_orientation,
+    train_retrieval,
+)
 
 if TYPE_CHECKING:
     from catalign.registration.config import EngineConfig
@@ -162,6 +168,7 @@ def evaluate(
 app.command()(neighbours)
 app.command()(train)
 app.command("train-orientation")(train_orientation)
+app.command("train-retrieval")(train_retrieval)
 app.command()(calibrate)
 
 

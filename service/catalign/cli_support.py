@@ -1,5 +1,5 @@
-"""What every ``catalign`` command shares: errors raised on purpose become one sentence, and
-the ``--engine FIELD=VALUE`` option.
+"""What every ``catalign`` command shares: errors raised on purpose become one sentence, the
+``--engine FIELD=VALUE`` option, and the options naming the folders training reads.
 
 A :class:`~catalign.errors.CatalignError` is the user's to act on, so it is printed as
 ``error: <message>`` with exit code 2, never as a traceback; anything else is a bug and keeps
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Annotated, TypeVar
 
 import typer
@@ -52,3 +53,17 @@ def options_to(config: Callable[..., Config], **options: object) -> Config:
             message = "--" + str(first["loc"][0]).replace("_", "-") + ": " + message
         typer.echo(f"error: {message}", err=True)
         raise typer.Exit(code=2) from None
+
+
+# The options naming a user's CAD folder of one category and the shared shapes' folders, as
+# the training commands take them.
+CategoryFolder = Annotated[
+    Path | None, typer.Option(help="Your own canonically aligned CAD files (+Y up) of --category.")
+]
+FolderUnits = Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")]
+ChairsFolder = Annotated[
+    Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
+]
+TablesFolder = Annotated[
+    Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
+]

@@ -18,6 +18,7 @@ class FakeExtractor:
 
     voxel_size = 0.05
     fingerprint = "fake-v1"
+    retrieval = None  # the pooled features shortlist
 
     def describe(self, points: np.ndarray) -> Described:
         centroids, _ = voxel_downsample(points, self.voxel_size)

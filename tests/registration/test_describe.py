@@ -26,6 +26,7 @@ class RecordingExtractor:
     headings = 1
     orientation = None
     category_orientations = MappingProxyType({})
+    retrieval = None
 
     def __init__(self) -> None:
         self.passes: list[int] = []

@@ -2,8 +2,9 @@
 
 Registration and the library index only see this interface, so the learned FCGF model and the
 classic FPFH descriptor are interchangeable. ``fingerprint`` names the exact extractor (the
-weights' sha256 for the learned one): a library index built with one fingerprint is refused by
-another, because its stored features would not be comparable.
+weights' sha256 for the learned one, and its retrieval encoders' when it has them): a library
+index built with one fingerprint is refused by another, because its stored features and
+descriptors would not be comparable.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from catalign.features.orientation import (
     find_category_orientations,
     find_orientation,
 )
+from catalign.features.retrieval import RetrievalHead, find_retrieval
 from catalign.paths import DEFAULT_MODEL_DIR
 
 
@@ -36,7 +38,8 @@ class Described:
 class FeatureExtractor(Protocol):
     """What registration and the library need of an extractor: its voxel size, its fingerprint,
     how many headings a query must be described at, the orientation proposals that choose them
-    (None: every heading, and no up is proposed) and those of single categories, the folder of
+    (None: every heading, and no up is proposed) and those of single categories, the retrieval
+    encoders that shortlist models (None: pooled features do), the folder of
     its weights (None for a descriptor without any; the engine reads the answers' calibrator
     there), and the description itself."""
 
@@ -45,6 +48,7 @@ class FeatureExtractor(Protocol):
     headings: int
     orientation: OrientationProposer | None
     category_orientations: Mapping[str, OrientationProposer]
+    retrieval: RetrievalHead | None
     model_dir: Path | None
 
     def describe(self, points: np.ndarray) -> Described: ...
@@ -68,7 +72,10 @@ class LearnedExtractor:
 
         self.model, self.card = load_model(model_dir or DEFAULT_MODEL_DIR)
         self.voxel_size = float(self.card["voxel_size"])
+        self.retrieval = find_retrieval(model_dir or DEFAULT_MODEL_DIR)
         self.fingerprint = str(self.card["sha256"])
+        if self.retrieval is not None:
+            self.fingerprint += f"+retrieval-{self.retrieval.fingerprint[:16]}"
         rotation = self.card.get("training", {}).get("rotation", "upright")
         self.headings = YAW_BINS.get(rotation, 1)
         self.orientation = find_orientation(model_dir or DEFAULT_MODEL_DIR)
@@ -100,6 +107,7 @@ class FPFHExtractor:
     headings = 1  # rotation-invariant: one heading describes every heading
     orientation = None
     category_orientations: Mapping[str, OrientationProposer] = MappingProxyType({})
+    retrieval = None
     model_dir = None
 
     def __init__(self, voxel_size: float = FPFH_VOXEL) -> None:

@@ -6,7 +6,7 @@ seeded from the source's sha256, so the same file always gives the same entry. C
 converted to metres (``source * unit_factor(units)``) before anything is stored, so a pose found
 against an entry maps *source coordinates converted to metres* into the observation. The
 extractor then gives key points and features,
-:func:`~catalign.library.retrieval.global_descriptor` the vector used for shortlisting, and
+:func:`~catalign.library.retrieval.model_descriptor` the vector used for shortlisting, and
 :class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated distance field
 that verification reads instead of searching the points.
 """
@@ -25,7 +25,7 @@ from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, Dist
 from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry, find_yaw_symmetry
-from catalign.library.retrieval import global_descriptor
+from catalign.library.retrieval import model_descriptor
 from catalign.library.sources import DEFAULT_CATEGORY, SourceFile, unit_factor
 from catalign.limits import MIN_VOXELS
 
@@ -173,7 +173,7 @@ def describe_shape(
         points=np.ascontiguousarray(points, dtype=np.float32),
         keypoints=np.ascontiguousarray(described.keypoints, dtype=np.float64),
         features=np.ascontiguousarray(described.features, dtype=np.float32),
-        descriptor=global_descriptor(described.features),
+        descriptor=model_descriptor(extractor, described.keypoints, described.features),
         bbox_min=bbox_min,
         bbox_max=bbox_max,
         size=bbox_max - bbox_min,

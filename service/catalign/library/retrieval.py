@@ -1,10 +1,13 @@
 """Shortlisting: which library models are worth registering a query against.
 
 Registration is expensive per candidate, so a query is first compared with every entry through a
-cheap global descriptor (:func:`global_descriptor`, the same function at build and query time)
-and a size check: a partial view can be smaller than the model it shows but not much larger, so
-a query whose largest extent exceeds a model's bounding-box diagonal (the longest distance
-inside any box that holds the model, whatever the query's orientation) is penalised.
+cheap global descriptor and a size check. The descriptor is the extractor's retrieval encoders'
+when it has them (:mod:`catalign.features.retrieval`: a model's at build time, a view's at query
+time, trained to land next to each other), else :func:`global_descriptor`, the same pooling of
+features at build and query time. The size check: a partial view can be smaller than the
+model it shows but not much larger, so a query whose largest extent exceeds a model's
+bounding-box diagonal (the longest distance inside any box that holds the model, whatever the
+query's orientation) is penalised.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import numpy as np
 from catalign.errors import DegenerateInputError, InvalidInputError
 
 if TYPE_CHECKING:
+    from catalign.features.extractor import FeatureExtractor
     from catalign.library.loaded import Library
 
 SIZE_TOLERANCE = 0.15  # noise and stray points may stretch a view this much past the model
@@ -37,13 +41,26 @@ def global_descriptor(features: np.ndarray) -> np.ndarray:
     return np.concatenate([_unit(feats.mean(axis=0)), _unit(feats.max(axis=0))]).astype(np.float32)
 
 
+def model_descriptor(
+    extractor: FeatureExtractor, keypoints: np.ndarray, features: np.ndarray
+) -> np.ndarray:
+    """A library model's descriptor (key points in its canonical frame): the retrieval
+    encoders' when the extractor has them, else its pooled features."""
+    if extractor.retrieval is None:
+        return global_descriptor(features)
+    return extractor.retrieval.model_descriptor(keypoints, features)
+
+
 def retrieval_scores(
     library: Library,
     query_descriptor: np.ndarray,
     query_size: np.ndarray | None,
     query_height: float | None = None,
+    penalty_weight: float = 1.0,
 ) -> np.ndarray:
-    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalties.
+    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalties
+    (times ``penalty_weight``: the descriptor's, see
+    :class:`~catalign.features.retrieval.RetrievalHead`).
 
     ``query_descriptor`` is one descriptor (K,), or several (V,K) of the same query (seen at
     several headings): then the scores are (V,E), one matrix product for all. ``query_size`` is
@@ -62,9 +79,10 @@ def retrieval_scores(
     query = query / np.maximum(np.linalg.norm(query, axis=-1, keepdims=True), _EPS)
     scores = (query @ library.unit_descriptors.T).astype(np.float64)
     if query_size is not None:
-        scores -= size_penalty(np.asarray(query_size, dtype=np.float64), library.sizes)
+        sizes = np.asarray(query_size, dtype=np.float64)
+        scores -= penalty_weight * size_penalty(sizes, library.sizes)
     if query_height is not None:
-        scores -= height_penalty(query_height, library.sizes[:, 1])
+        scores -= penalty_weight * height_penalty(query_height, library.sizes[:, 1])
     return scores
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from catalign.features.extractor import FeatureExtractor
 from catalign.library.loaded import Library
 from catalign.registration.config import EngineConfig
 from catalign.registration.decision.confidence import Calibrator
@@ -40,14 +41,16 @@ class Stages:
 def assemble(
     config: EngineConfig,
     library: Library,
+    extractor: FeatureExtractor,
     *,
-    voxel: float,
     calibrator: Calibrator | None,
     calibrators: Mapping[str, Calibrator] | None = None,
 ) -> Stages:
-    """The stages for ``library`` and features of ``voxel`` metres: RANSAC and verification
-    inlier distances are ``config.ransac.factor`` voxels, ICP's ``config.icp.factor``;
-    ``calibrators`` read the answers of their category's models in place of ``calibrator``."""
+    """The stages for ``library`` and the ``extractor``'s features (its voxel, its retrieval
+    encoders): RANSAC and verification inlier distances are ``config.ransac.factor`` voxels,
+    ICP's ``config.icp.factor``; ``calibrators`` read the answers of their category's models in
+    place of ``calibrator``."""
+    voxel = extractor.voxel_size
     distance = config.ransac.factor * voxel
     icp_distance = config.icp.factor * voxel
     verifier = build_verifier(config, library, distance=distance, voxel=voxel)
@@ -61,6 +64,7 @@ def assemble(
         heading_models=config.match.heading_models,
         up_belief_power=config.verify.up_belief_power,
         heading_belief_power=config.verify.heading_belief_power,
+        retrieval=extractor.retrieval,
     )
     fitter = CategoryFitter(library, refiner, extent_points=config.verify.coverage_points)
     finisher = Finisher(

@@ -138,7 +138,7 @@ class Engine:
         self.icp_distance = config.icp.factor * voxel
         general, own = _calibrators(extractor, calibrator)
         self.orientations = extractor.category_orientations
-        stages = assemble(config, library, voxel=voxel, calibrator=general, calibrators=own)
+        stages = assemble(config, library, extractor, calibrator=general, calibrators=own)
         self.verifier, self.searcher = stages.verifier, stages.searcher
         self.refiner, self.rules, self.finisher = stages.refiner, stages.rules, stages.finisher
 

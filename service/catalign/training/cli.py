@@ -6,32 +6,33 @@ their configurations' (:mod:`catalign.training.config`), the one source of each 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from catalign.cli_support import exit_on_error, options_to
+from catalign.cli_support import (
+    CategoryFolder,
+    ChairsFolder,
+    FolderUnits,
+    TablesFolder,
+    exit_on_error,
+    options_to,
+)
 from catalign.errors import ConfigError
-from catalign.training.config import CalibrationConfig, OrientationConfig, TrainConfig
+from catalign.training.config import (
+    CalibrationConfig,
+    OrientationConfig,
+    RetrievalConfig,
+    TrainConfig,
+)
+from catalign.training.sources import one_category, training_sources
 
 if TYPE_CHECKING:
-    from catalign.training.loop import ShapeSource
+    pass
 
 TRAIN, ORIENTATION, CALIBRATION = TrainConfig(), OrientationConfig(), CalibrationConfig()
-# The options naming a user's CAD folder of one category, as train-orientation and calibrate
-# take them.
-CategoryFolder = Annotated[
-    Path | None, typer.Option(help="Your own canonically aligned CAD files (+Y up) of --category.")
-]
-FolderUnits = Annotated[str, typer.Option(help="Units of the --data files: m, cm or mm.")]
-ChairsFolder = Annotated[
-    Path | None, typer.Option(help="Shared chairs folder (default: ../shared/data/chairs).")
-]
-TablesFolder = Annotated[
-    Path | None, typer.Option(help="Shared tables folder (default: ../shared/data/tables).")
-]
+RETRIEVAL = RetrievalConfig()
 
 
 def neighbours(
@@ -179,48 +180,6 @@ def initial_architecture(init_from: Path | None) -> dict[str, object]:
     return {k: training[k] for k in ("model", "conv1_kernel_size", "voxel_size") if k in training}
 
 
-def one_category(
-    category: str,
-    data: Path | None,
-    units: str,
-    chairs_dir: Path | None,
-    tables_dir: Path | None,
-) -> ShapeSource:
-    """The shapes of ``category`` that ``train-orientation`` and ``calibrate`` learn from: the
-    shared chairs or tables, or all of a user's folder ``data`` taken as that category."""
-    sources = training_sources([category], data, units, chairs_dir, tables_dir)
-    return sources[category]
-
-
-def training_sources(
-    category: list[str] | None,
-    data: Path | None,
-    units: str,
-    chairs_dir: Path | None,
-    tables_dir: Path | None,
-) -> Mapping[str, ShapeSource]:
-    """The shapes ``catalign train`` learns from, by category: a user's folder, or else the
-    shared chairs and tables."""
-    from catalign.data.shapes import shared_shapes
-    from catalign.training.cad_folder import cad_folders
-
-    if data is not None:
-        if category and len(category) > 1:
-            raise ConfigError(
-                "--data holds one category (--category NAME) or one sub-folder per category "
-                f"(no --category); got {len(category)} categories"
-            )
-        return cad_folders(data, category[0] if category else None, units)
-    roots = {"chair": chairs_dir, "table": tables_dir}
-    for name in category or ():
-        if name not in roots:
-            raise ConfigError(
-                f"no shared shapes of category {name!r} (there are chair and table); train on "
-                "your own CAD files with --data DIR --category NAME"
-            )
-    return {name: shared_shapes(name, roots[name]) for name in category or ("chair",)}
-
-
 def train_orientation(
     out: Annotated[
         Path, typer.Option(help="Run folder: cached views, weights and card.")
@@ -314,6 +273,45 @@ def train_orientation(
     typer.echo(
         f"orientation model written to {out} (ship it: copy its {WEIGHTS_FILE} and "
         f"{CARD_FILE} to model_store/{target}orientation/)"
+    )
+
+
+def train_retrieval(
+    out: Annotated[
+        Path, typer.Option(help="Folder of the retrieval encoders (ships in model_store/).")
+    ] = RETRIEVAL.out,
+    steps: Annotated[int, typer.Option(min=1, help="Training steps.")] = RETRIEVAL.steps,
+    procedural: Annotated[
+        int, typer.Option(min=0, help="Procedural chairs among the training models.")
+    ] = RETRIEVAL.procedural,
+    seed: Annotated[int, typer.Option(help="Seed of the views and the training.")] = RETRIEVAL.seed,
+    threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = RETRIEVAL.threads,
+    model_dir: Annotated[
+        Path | None,
+        typer.Option(help="Feature weights the encoders sit on (default: model_store/)."),
+    ] = None,
+    chairs_dir: ChairsFolder = None,
+    tables_dir: TablesFolder = None,
+) -> None:
+    """Train the retrieval encoders: a partial view's descriptor next to its own model's."""
+    import torch
+
+    from catalign.features.extractor import LearnedExtractor
+    from catalign.features.retrieval import CARD_FILE, WEIGHTS_FILE
+    from catalign.training.retrieval import run
+
+    config = options_to(
+        RetrievalConfig, out=out, steps=steps, procedural=procedural, seed=seed, threads=threads
+    )
+    with exit_on_error():
+        sources = training_sources(["chair", "table"], None, "m", chairs_dir, tables_dir)
+        extractor = LearnedExtractor(model_dir)
+        torch.set_num_threads(config.threads)
+        card = run(config, list(sources.values()), extractor)
+    typer.echo(json.dumps(card["held_out"], indent=2))
+    typer.echo(
+        f"retrieval encoders written to {out} (ship them: copy {WEIGHTS_FILE} and {CARD_FILE} "
+        "to model_store/retrieval/, then rebuild every library)"
     )
 
 

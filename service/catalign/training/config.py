@@ -141,6 +141,45 @@ class OrientationConfig(BaseModel):
         )
 
 
+class RetrievalConfig(BaseModel):
+    """Everything a retrieval training run depends on (``catalign train-retrieval``)."""
+
+    steps: int = Field(1_500, ge=1)
+    batch_size: int = Field(48, ge=2, description="views a step, each of its own model")
+    negatives: int = Field(
+        96, ge=0, description="other models each step's views are scored against"
+    )
+    temperature: float = Field(0.07, gt=0)
+    learning_rate: float = Field(1e-3, gt=0)
+    dims: int = Field(256, ge=8, description="the descriptor's length")
+    views_per_shape: int = Field(8, ge=1, description="views of each shared training shape")
+    procedural: int = Field(1_000, ge=0, description="procedural chairs among the models")
+    procedural_views: int = Field(2, ge=1, description="views of each procedural chair")
+    procedural_first_seed: int = Field(1_000, ge=0)
+    heading_error_deg: float = Field(
+        8.0, ge=0, description="error of the heading a training view is described at"
+    )
+    view_points: int = Field(512, ge=16, description="points a training view keeps at most")
+    model_points: int = Field(768, ge=16, description="points a training model keeps at most")
+    min_view_share: float = Field(
+        0.5, gt=0, le=1, description="least share of its points a training view keeps"
+    )
+    min_view_points: int = Field(32, ge=1)
+    penalty_weight: float = Field(
+        0.5, ge=0, description="share of the size and height penalties the shortlist takes off"
+    )
+    seed: int = 100
+    threads: int = Field(2, ge=1)
+    out: Path = Path("runs/retrieval")
+
+    def command(self) -> str:
+        """The ``catalign train-retrieval`` command line that runs this configuration."""
+        return (
+            f"catalign train-retrieval --out {self.out} --steps {self.steps} "
+            f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
+        )
+
+
 def _unless_default(config: BaseModel, field: str, option: str) -> str:
     """``option`` when ``config``'s ``field`` differs from its default, else nothing."""
     default = type(config).model_fields[field].default

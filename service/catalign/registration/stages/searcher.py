@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
-from catalign.registration.stages.describe import QueryView
+from catalign.registration.stages.describe import QueryView, rotations_of
 from catalign.registration.stages.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.stages.match import Matcher
 from catalign.registration.stages.request import Request
@@ -29,7 +30,9 @@ from catalign.registration.stages.verify import Scored, Verifier
 class Searcher:
     """The stages of one orientation's search over ``library`` (module docstring), with the
     options the engine's configuration names: ``heading_models`` (the best shortlisted models
-    the headings are chosen on), ``up_belief_power`` and ``heading_belief_power``."""
+    the headings are chosen on), ``up_belief_power`` and ``heading_belief_power``; and the
+    extractor's ``retrieval`` encoders that describe the query for the shortlist (None: its
+    pooled features)."""
 
     library: Library
     matcher: Matcher
@@ -39,13 +42,22 @@ class Searcher:
     heading_models: int
     up_belief_power: float
     heading_belief_power: float
+    retrieval: RetrievalHead | None = None
 
     def search(self, search: Search, request: Request) -> tuple[Search, list[Scored]]:
         """The query searched under one orientation: the search with its shortlist and checks,
         and its verified poses, best first, weighed by the beliefs in the orientation."""
         turn, seed, clock = search.turn, request.seed, request.clock
         with clock("shortlist"):
-            candidates = shortlist(self.library, search.views, request.k, turn, request.rows)
+            candidates = shortlist(
+                self.library,
+                search.views,
+                request.k,
+                turn,
+                request.rows,
+                rotations=rotations_of(search.orientation),
+                retrieval=self.retrieval,
+            )
 
         # Match: keep the headings the leading candidates agree with, match every candidate
         # there, and hypothesise poses from each candidate's matches at each kept heading.

@@ -5,13 +5,16 @@ library entry through the cheap scores of :mod:`catalign.library.retrieval`: glo
 similarity, a size check, and with ``up`` the query's height (a view usually shows a chair from
 its feet to the top of its back). The query is scored at each heading it was described at and
 keeps each model's best score, since only the right heading's features look like the models'.
-The order matters even when every model is kept: the first few also choose the headings.
+The order matters even when every model is kept: the first few also choose the headings. With
+the extractor's retrieval encoders, each heading's view is described by the view encoder, its
+key points turned into the canonical frame at that heading, as the features were computed.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
@@ -23,16 +26,26 @@ def shortlist(
     k: int | None,
     turn: np.ndarray | None,
     rows: np.ndarray | None = None,
+    *,
+    rotations: list[np.ndarray] | None = None,
+    retrieval: RetrievalHead | None = None,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
     every model). ``views`` are the query at each heading; ``turn`` is the levelling turn when
-    ``up`` is known (its second row is ``up`` in the observation frame), else None."""
+    ``up`` is known (its second row is ``up`` in the observation frame), else None. With
+    ``retrieval`` encoders, ``rotations`` are those the views were described after
+    (observation -> the canonical frame at each heading)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
-    descriptors = np.stack([global_descriptor(v.features) for v in views])
-    scores = retrieval_scores(library, descriptors, size, height).max(axis=0)
+    if retrieval is None or rotations is None:
+        descriptors = np.stack([global_descriptor(v.features) for v in views])
+        weight = 1.0
+    else:
+        turned = [(v.keypoints @ r.T, v.features) for v, r in zip(views, rotations, strict=True)]
+        descriptors, weight = retrieval.view_descriptors(turned), retrieval.penalty_weight
+    scores = retrieval_scores(library, descriptors, size, height, weight).max(axis=0)
     candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
