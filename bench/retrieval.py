@@ -1,0 +1,143 @@
+"""Retrieval at scale: the shared chairs and tables amid thousands of procedural distractors.
+
+Each library holds every shared chair and table (the validation ones are observed, the training
+ones are distractors of their category) and ``N`` procedural chairs (seeds from
+:data:`FIRST_SEED`, far from those the retrieval encoders were trained on), built through
+``catalign.library.index.build`` with every core, once per weights and ``N``, into ``--cache``.
+Every entry is a real build; none is a copy. The queries are views of the validation chairs and
+tables with ``up`` given and their category sent, registered by the engine in this process.
+Per library and observed category it reports the views answered with the observed shape's own
+model (top-1), those whose own model was shortlisted, the views right (within 10 degrees, to
+the nearest symmetric pose, and 5 cm), and the median and 95th-percentile seconds per query.
+Prints a markdown table and writes it to ``bench/results/retrieval.md``.
+
+    .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--views 2] [--seed 0]
+        [--model-dir DIR] [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from _report import load_average, publish
+from tqdm import tqdm
+
+from catalign.data.procedural import generate_chair
+from catalign.data.shapes import Shape, SharedChairs, SharedTables
+from catalign.data.views import WORLD_UP
+from catalign.evaluation.protocol import build_cases, frames_of, symmetries_of
+from catalign.features.extractor import LearnedExtractor
+from catalign.geometry.ncc import NCCFrame
+from catalign.library.index import build
+from catalign.library.loaded import load
+from catalign.library.store import has_manifest
+from catalign.registration.engine import Engine
+from catalign.threads import limit_threads
+from catalign.training.calibration import right_pose
+
+RESULTS = Path(__file__).parent / "results" / "retrieval.md"
+FIRST_SEED = 100_000
+
+
+def write_sources(folder: Path, shared: dict[str, dict[str, Shape]], distractors: int) -> None:
+    """Every shape as a file in its category's sub-folder, as ``library build`` reads them."""
+    for category, shapes in shared.items():
+        place = folder / category
+        place.mkdir(parents=True, exist_ok=True)
+        for shape_id, shape in shapes.items():
+            if shape.mesh is None:
+                np.save(place / f"{shape_id}.npy", shape.points.astype(np.float32))
+            else:
+                mesh = trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False)
+                mesh.export(place / f"{shape_id}.ply")
+    for seed in tqdm(range(FIRST_SEED, FIRST_SEED + distractors), desc="distractors"):
+        generate_chair(seed).export(folder / "chair" / f"proc-{seed}.ply")
+
+
+def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distractors: int) -> Path:
+    """The library of the shared shapes and ``distractors`` procedural chairs (built once)."""
+    out = cache / extractor.fingerprint[:24] / f"distractors-{distractors}"
+    if not has_manifest(out):
+        with tempfile.TemporaryDirectory(dir=cache) as folder:
+            write_sources(Path(folder), shared, distractors)
+            started = time.perf_counter()
+            build([folder], out, extractor, overwrite=True, workers=2)
+            print(f"built {out} in {time.perf_counter() - started:.0f} s")
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--distractors", type=int, nargs="+", default=[0, 1000, 10000])
+    parser.add_argument("--views", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--model-dir", type=Path, default=None)
+    parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    limit_threads(args.threads, total=args.threads)
+    args.cache.mkdir(parents=True, exist_ok=True)
+
+    extractor = LearnedExtractor(args.model_dir)
+    sources = {"chair": SharedChairs(None), "table": SharedTables(None)}
+    shared = {c: {i: s.metric(i) for i in s.ids()} for c, s in sources.items()}
+    observed = {c: {i: shared[c][i] for i in s.ids("val")} for c, s in sources.items()}
+    every = {i: s for group in shared.values() for i, s in group.items()}
+    frames, symmetries = frames_of(every), symmetries_of(every)
+    cases = {c: build_cases(observed[c], args.views, args.seed) for c in sources}
+
+    rows = []
+    for distractors in args.distractors:
+        library = load(library_for(args.cache, extractor, shared, distractors), None)
+        engine = Engine(extractor, library)
+        for category, items in cases.items():
+            own, listed, right, seconds = [], [], [], []
+            for case in tqdm(items, desc=f"{len(library)} models, {category}"):
+                started = time.perf_counter()
+                result = engine.register(
+                    case.points, up=WORLD_UP, seed=args.seed, category=category
+                )
+                seconds.append(time.perf_counter() - started)
+                if result.model_id not in frames:  # a distractor: its frame from its entry
+                    frames[result.model_id] = NCCFrame.fit(library[result.model_id].points)
+                own.append(result.model_id == case.shape_id)
+                listed.append(case.shape_id in {c.model_id for c in result.candidates})
+                right.append(right_pose(result.pose, result.model_id, case, frames, symmetries))
+            in_category = sum(
+                1 for r in library.manifest.entries.values() if r.category == category
+            )
+            rows.append(
+                (len(library), in_category, category, len(items), own, listed, right, seconds)
+            )
+
+    lines = [
+        "# Retrieval at scale",
+        "",
+        f"Every shared chair and table plus N procedural chairs; {args.views} view(s) of each "
+        f"validation shape, seed {args.seed}, `up` given, category sent; weights "
+        f"`{args.model_dir or 'model_store'}` (fingerprint `{extractor.fingerprint[:24]}`), "
+        f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
+        "own model answered; shortlisted: its own model among the candidates registered; right: "
+        "within 10 degrees (nearest symmetric pose) and 5 cm.",
+        "",
+        "| models | of the category | observed | views | top-1 % | shortlisted % | right % | "
+        "median s | p95 s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for size, in_category, category, count, own, listed, right, seconds in rows:
+        lines.append(
+            f"| {size} | {in_category} | {category} | {count} | {100 * np.mean(own):.1f} | "
+            f"{100 * np.mean(listed):.1f} | {100 * np.mean(right):.1f} | "
+            f"{np.median(seconds):.3f} | {np.percentile(seconds, 95):.3f} |"
+        )
+    publish("\n".join(lines) + "\n", args.out)
+
+
+if __name__ == "__main__":
+    main()
