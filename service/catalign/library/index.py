@@ -32,6 +32,7 @@ from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_fac
 from catalign.library.store import (
     EntryRecord,
     Manifest,
+    begin_write,
     commit,
     commit_changes,
     count_entries,
@@ -306,6 +307,7 @@ def _describe(
     commits them; a failure that is not journalled tidies at once what it wrote."""
     written: set[str] = set()
     records: dict[str, EntryRecord] = {}
+    begin_write(library_dir)
     try:
         described = describe_all(
             library_dir, jobs, extractor, workers=workers, journal=journal, progress=progress

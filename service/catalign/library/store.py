@@ -116,7 +116,9 @@ def category_counts(library_dir: Path) -> dict[str, int]:
 @contextmanager
 def writer_lock(library_dir: Path) -> Iterator[None]:
     """Hold an exclusive ``flock`` on the library's lock file (threads and processes alike);
-    roll back what a killed writer left in the catalogue and mark this write begun."""
+    roll back what a killed writer left in the catalogue, and have this writer's commit sweep
+    the entries folder if an earlier writer's mark is still there (it died or failed before its
+    clean-up)."""
     library_dir.mkdir(parents=True, exist_ok=True)
     fd = os.open(library_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -127,11 +129,19 @@ def writer_lock(library_dir: Path) -> Iterator[None]:
             fcntl.flock(fd, fcntl.LOCK_EX)
         recover(library_dir)
         mark = library_dir / WRITING_NAME
-        # An earlier writer's mark: it died or failed before its clean-up; this one sweeps.
-        mark.write_bytes(_SWEEP if mark.exists() else b"")
+        if mark.exists():
+            mark.write_bytes(_SWEEP)
         yield
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def begin_write(library_dir: Path) -> None:
+    """Mark a write begun, before its first entry file: a writer that dies before its
+    clean-up leaves the mark, and the next writer's commit sweeps the entries folder."""
+    mark = library_dir / WRITING_NAME
+    if not mark.exists():  # else an earlier writer's, which the lock turned into a sweep
+        mark.write_bytes(b"")
 
 
 def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
