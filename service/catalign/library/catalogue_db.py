@@ -25,6 +25,7 @@ CATALOGUE_NAME = "catalogue.sqlite"
 LEGACY_MANIFEST_NAME = "manifest.json"  # format 2's catalogue: one JSON file
 READ_TIMEOUT_S = 30.0  # a writer holds its exclusive lock only while it commits
 WRITE_TIMEOUT_S = 120.0  # a reader holds its shared lock while it reads every row
+_COPY_ATTEMPTS = 10  # each failed one means a writer rolled the journal back meanwhile
 
 
 def catalogue_path(library_dir: Path) -> Path:
@@ -44,7 +45,7 @@ def reading(library_dir: Path) -> Iterator[sqlite3.Connection]:
         raise no_catalogue(library_dir)
     with translated(library_dir):
         copy: tempfile.TemporaryDirectory[str] | None = None
-        while True:
+        for _ in range(_COPY_ATTEMPTS):
             connection = sqlite3.connect(
                 _uri(path, "ro"), uri=True, timeout=READ_TIMEOUT_S, isolation_level=None
             )
@@ -60,6 +61,8 @@ def reading(library_dir: Path) -> Iterator[sqlite3.Connection]:
             if found is not None:
                 connection, copy = found
                 break
+        else:
+            raise LibraryError(f"{path} kept changing while it was read; try again")
         try:
             yield connection
         finally:
