@@ -14,6 +14,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import textwrap
 from contextlib import closing
 from pathlib import Path
@@ -241,7 +242,7 @@ add(library, sys.argv[3:], FakeExtractor(), replace=True, progress=False)
 
 @pytest.mark.parametrize("point", ["entry files written", "mid-transaction", "committed"])
 def test_a_writer_killed_at_any_point_of_a_write_leaves_a_committed_state(
-    library, files, extractor, point
+    library, files, extractor, point, monkeypatch, tmp_path
 ) -> None:
     before, stamp = load(library, extractor.fingerprint), manifest_stamp(library)
     database = (library / "catalogue.sqlite").read_bytes()
@@ -258,6 +259,10 @@ def test_a_writer_killed_at_any_point_of_a_write_leaves_a_committed_state(
     journal = library / "catalogue.sqlite-journal"
     if point == "mid-transaction":  # the hard case: a hot journal, a torn database
         assert journal.is_file() and (library / "catalogue.sqlite").read_bytes() != database
+        with monkeypatch.context() as patched:  # the private copy needs a temporary folder
+            patched.setattr(tempfile, "tempdir", str(tmp_path / "no-such-folder"))
+            with pytest.raises(LibraryError, match="writable temporary folder"):
+                load(library, extractor.fingerprint)
     on_disk = everything(library)
     after = load(library, extractor.fingerprint)
     if point == "committed":

@@ -57,7 +57,15 @@ def reading(library_dir: Path) -> Iterator[sqlite3.Connection]:
                 connection.close()
                 if error.sqlite_errorname != "SQLITE_READONLY_ROLLBACK":
                     raise
-            found = _rolled_back_copy(path)
+            try:
+                found = _rolled_back_copy(path)
+            except OSError as error:
+                raise LibraryError(
+                    f"{path} was left mid-write by a killed writer, and the private copy a "
+                    f"reader rolls back until the next writer does could not be made ({error}); "
+                    "give this process a writable temporary folder (TMPDIR), or run any "
+                    "library write to roll it back"
+                ) from error
             if found is not None:
                 connection, copy = found
                 break
