@@ -38,6 +38,7 @@ from catalign.features.extractor import LearnedExtractor
 from catalign.geometry.sampling import subsample
 from catalign.library.index import build_procedural
 from catalign.library.loaded import load
+from catalign.library.store import CATALOGUE_NAME
 from catalign.registration.config import EngineConfig
 from catalign.registration.engine import STAGES, Engine
 from catalign.registration.methods import build_registrar
@@ -106,7 +107,7 @@ def main() -> None:
     rows, stages = [], []
     for size in args.sizes:
         folder = args.cache / f"{extractor.fingerprint[:12]}-{size}"
-        if not (folder / "manifest.json").is_file():
+        if not (folder / CATALOGUE_NAME).is_file():
             build_procedural(folder, extractor, size, first_seed=0, overwrite=True)
         library = load(folder, extractor.fingerprint)
         for mode, (options, up) in MODES.items():

@@ -38,6 +38,7 @@ from serve import MODEL_DIR, REQUEST_TIMEOUT_S, UP, ServerProcess, query_cloud
 from catalign.features.extractor import LearnedExtractor
 from catalign.library.index import build_procedural
 from catalign.library.loaded import load
+from catalign.library.store import CATALOGUE_NAME
 from catalign.registration.config import EngineConfig
 from catalign_client import Client
 
@@ -193,7 +194,7 @@ def main() -> None:
     libraries = args.library
     if not libraries:
         folder = args.cache / f"{fingerprint[:12]}-{args.size}"
-        if not (folder / "manifest.json").is_file():
+        if not (folder / CATALOGUE_NAME).is_file():
             build_procedural(
                 folder, LearnedExtractor(MODEL_DIR), args.size, first_seed=0, overwrite=True
             )

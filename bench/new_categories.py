@@ -49,6 +49,7 @@ from catalign.geometry.io import MeshData
 from catalign.geometry.ncc import NCCFrame
 from catalign.library.index import build
 from catalign.library.loaded import Library, load
+from catalign.library.store import CATALOGUE_NAME
 from catalign.registration.engine import Engine
 from catalign.threads import limit_threads
 
@@ -85,7 +86,7 @@ def library_for(
             mesh.export(path)
             digest.update(path.read_bytes())
         folder = cache / f"new-categories-{digest.hexdigest()[:16]}"
-        if not (folder / "manifest.json").is_file():
+        if not (folder / CATALOGUE_NAME).is_file():
             build([temp], folder, extractor, overwrite=True)
     return load(folder, extractor.fingerprint)
 

@@ -82,7 +82,9 @@ from catalign.api import catalign_pb2, catalign_pb2_grpc
 from catalign.data.camera import camera_at
 from catalign.data.shapes import procedural_shape
 from catalign.data.views import random_object_pose, render_view
+from catalign.errors import CatalignError
 from catalign.geometry.sampling import subsample
+from catalign.library.store import list_ids
 from catalign_client import Client
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -739,8 +741,8 @@ def _split(count: int, parts: int) -> list[int]:
 
 def _library_ids() -> list[str]:
     try:
-        return list(json.loads((LIBRARY / "manifest.json").read_text()).get("entries", {}))
-    except (OSError, ValueError):
+        return list_ids(LIBRARY)
+    except CatalignError:
         return []
 
 

@@ -56,6 +56,7 @@ from _report import load_average, publish
 from serve import KEEPALIVE_S, LIBRARY, UP, ServerProcess, _cpu_model, _process_tree, query_cloud
 
 from catalign.data.shapes import procedural_shape
+from catalign.library.store import count_entries
 from catalign_client import Client
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -409,7 +410,7 @@ def main() -> None:
         library = Path(work) / "library"
         shutil.copytree(args.library, library, ignore=shutil.ignore_patterns(".spool", ".lock"))
         meshes = upload_meshes(Path(work))
-        models = len(json.loads((library / "manifest.json").read_text())["entries"])
+        models = count_entries(library)
         server = ServerProcess(args.workers, QUEUE, "processes", 1, library, DEADLINE_S)
         try:
             ready_s = server.wait_ready()

@@ -41,6 +41,7 @@ from catalign.data.views import WORLD_UP
 from catalign.features.extractor import LearnedExtractor
 from catalign.library.index import build_procedural
 from catalign.library.loaded import load
+from catalign.library.store import CATALOGUE_NAME
 from catalign.registration.engine import Engine
 from catalign.threads import cores, limit_malloc_arenas, limit_threads
 
@@ -57,7 +58,7 @@ def engine_for(model_dir: Path | None, cache: Path) -> Engine:
     """An engine on latency.py's 50-model procedural library, built and cached when missing."""
     extractor = LearnedExtractor(model_dir)
     folder = cache / f"{extractor.fingerprint[:12]}-{LIBRARY_SIZE}"
-    if not (folder / "manifest.json").is_file():
+    if not (folder / CATALOGUE_NAME).is_file():
         build_procedural(folder, extractor, LIBRARY_SIZE, first_seed=0, overwrite=True)
     return Engine(extractor, load(folder, extractor.fingerprint))
 

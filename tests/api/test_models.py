@@ -36,12 +36,12 @@ def test_added_and_removed_models_are_served_and_persist(
         serve(library=library_copy, warmup=False) as server,
         httpx.Client(base_url=server.url, timeout=120) as http,
     ):
-        manifest = (library_copy / "manifest.json").read_bytes()
+        catalogue = (library_copy / "catalogue.sqlite").read_bytes()
         for fields in ({"model_id": ".hidden"}, {"units": "furlongs"}):
             refused = http.post("/models", files=upload, data=fields)
             assert refused.status_code == 422, fields
             assert refused.json()["error"]["code"] == "invalid_input"
-        assert (library_copy / "manifest.json").read_bytes() == manifest
+        assert (library_copy / "catalogue.sqlite").read_bytes() == catalogue
 
         added = http.post("/models", files=upload, data={"model_id": "chair-7"})
         assert added.status_code == 201, added.text

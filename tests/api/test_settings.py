@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, closing
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -145,10 +146,9 @@ def test_a_librarys_engine_options_apply_under_the_services(
 def test_serve_refuses_a_library_whose_engine_option_is_bad_in_one_sentence(
     library_copy: Path,
 ) -> None:
-    manifest = library_copy / "manifest.json"
-    raw = json.loads(manifest.read_text())
-    raw["engine"] = {"top_k": 0}  # edited by hand: `catalign library configure` refuses it
-    manifest.write_text(json.dumps(raw))
+    catalogue = sqlite3.connect(library_copy / "catalogue.sqlite")
+    with closing(catalogue), catalogue:  # edited by hand: `catalign library configure` refuses it
+        catalogue.execute("UPDATE library SET engine = ?", (json.dumps({"top_k": 0}),))
     result = CliRunner().invoke(app, ["serve", "--library", str(library_copy)])
     assert result.exit_code == 2
     assert f"the library {library_copy} sets engine option top_k" in result.stderr

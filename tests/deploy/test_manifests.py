@@ -17,21 +17,23 @@ and every container runs non-root on a read-only root filesystem with emptyDirs 
 writes. An overlay sharded by category holds all of that once per shard (named with the shard's
 suffix), and its HTTPRoute sends each category, as the SDK sends it, to the shard whose library
 is named for it, and everything else to the default shard; each shard's writer seeds only the
-shard's own categories.
+shard's own categories, and the writer's seed script seeds an empty volume once and converts a
+library an older image seeded.
 """
 
 from __future__ import annotations
 
 import asyncio
 import copy
+import dataclasses
 import functools
-import json
 import math
 import os
 import re
 import runpy
 import shlex
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +51,7 @@ from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.library import catalogue
 from catalign.library.loaded import load
 from catalign.library.sources import validate_category
 from catalign.library.store import read_manifest
@@ -951,12 +954,14 @@ def test_each_shard_writer_seeds_only_its_own_categories(
     relabelled = tmp_path / "image-library"
     relabelled.mkdir()
     (relabelled / "entries").symlink_to(image / "entries")
-    raw = json.loads((image / "manifest.json").read_text(encoding="utf-8"))
+    shipped = read_manifest(image)
     own = set(shard_names(overlay)) - {DEFAULT_SHARD}
     categories = (*sorted(own), "sofa")  # sofa: a category without a shard of its own
-    for row, record in enumerate(raw["entries"].values()):
-        record["category"] = categories[row % len(categories)]
-    (relabelled / "manifest.json").write_text(json.dumps(raw), encoding="utf-8")
+    entries = {
+        model_id: dataclasses.replace(record, category=categories[row % len(categories)])
+        for row, (model_id, record) in enumerate(shipped.entries.items())
+    }
+    catalogue.create(relabelled, dataclasses.replace(shipped, entries=entries))
     everything = read_manifest(relabelled)
     assert "sofa" not in own
     seeded: dict[str, str | None] = {}
@@ -965,9 +970,9 @@ def test_each_shard_writer_seeds_only_its_own_categories(
         script, env = seed_run(overlay, shard, library, relabelled)
         assert env["SHARD"] == shard and set(env["SHARDS"].split()) == own
         assert "seeded" in run_seed(script, env, monkeypatch, capsys)
-        written = (library / "manifest.json").read_bytes()
+        written = (library / "catalogue.sqlite").read_bytes()
         assert "not seeding" in run_seed(script, env, monkeypatch, capsys)
-        assert (library / "manifest.json").read_bytes() == written
+        assert (library / "catalogue.sqlite").read_bytes() == written
         manifest = read_manifest(library)
         wanted = {shard} if shard != DEFAULT_SHARD else set(categories) - own
         expected = {i for i, r in everything.entries.items() if r.category in wanted}
@@ -977,3 +982,48 @@ def test_each_shard_writer_seeds_only_its_own_categories(
         for model_id in manifest.entries:
             assert seeded.setdefault(model_id, shard) == shard
     assert set(seeded) == set(everything.entries)
+
+
+def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
+    tmp_path: Path,
+) -> None:
+    """The base writer's seed-library script, run as its init container runs it (the volume
+    and the image's folder replaced by folders here): an empty volume gets the image's library,
+    entries first and the catalogue last; a second start changes nothing; a library of format 2
+    (manifest.json, seeded by an older image) is converted in place, its entry files kept."""
+    from tests.library.conftest import as_format_2
+
+    writer = find("dev", "Deployment", WRITER)
+    (seed,) = [c for c in writer["spec"]["template"]["spec"]["initContainers"]]
+    assert seed["name"] == "seed-library" and seed["command"][:2] == ["sh", "-c"]
+    volume, image = tmp_path / "volume", tmp_path / "app"
+    (image / "model_store").mkdir(parents=True)
+    (image / "model_store" / "library").symlink_to(ROOT / "model_store" / "library")
+    script = seed["command"][2].replace("/var/lib/catalign/library", str(volume))
+    script = script.replace("/app/", f"{image}/")
+    bin_dir = tmp_path / "bin"  # `catalign` as the image has it, from this checkout
+    bin_dir.mkdir()
+    (bin_dir / "catalign").write_text(
+        f'#!/bin/sh\nexec {sys.executable} -c "from catalign.cli import app; app()" "$@"\n'
+    )
+    (bin_dir / "catalign").chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}"}
+
+    def run() -> str:
+        done = subprocess.run(["sh", "-c", script], env=env, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    shipped = read_manifest(ROOT / "model_store" / "library")
+    assert "seeded" in run()
+    assert read_manifest(volume).entries == shipped.entries
+    assert len(load(volume, shipped.fingerprint)) == len(shipped.entries)
+    written = (volume / "catalogue.sqlite").read_bytes()
+    assert "not seeding" in run()
+    assert (volume / "catalogue.sqlite").read_bytes() == written
+    entries = {p.name: p.read_bytes() for p in (volume / "entries").iterdir()}
+    as_format_2(volume)
+    assert "converted to format 3" in run()
+    assert not (volume / "manifest.json").exists()
+    assert read_manifest(volume).entries == shipped.entries
+    assert {p.name: p.read_bytes() for p in (volume / "entries").iterdir()} == entries

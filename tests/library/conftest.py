@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import sqlite3
+from contextlib import closing
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -10,6 +14,7 @@ import trimesh
 
 from catalign.features.extractor import Described
 from catalign.geometry.sampling import voxel_downsample
+from catalign.library.store import read_manifest
 
 
 class FakeExtractor:
@@ -100,15 +105,43 @@ def mixed_folder(files: ShapeFiles) -> Path:
     return files.root
 
 
+def stored(library_dir: Path, query: str) -> list[tuple[Any, ...]]:
+    """The rows ``query`` finds in the library's catalogue file, read as any SQLite client."""
+    with closing(sqlite3.connect(library_dir / "catalogue.sqlite")) as connection:
+        return connection.execute(query).fetchall()
+
+
+def as_format_2(library_dir: Path) -> dict[str, Any]:
+    """Turn a library back into format 2 (its catalogue as the ``manifest.json`` catalign
+    wrote before format 3, which users still have) and return that JSON."""
+    manifest = read_manifest(library_dir)
+    raw = {
+        "format_version": 2,
+        "extractor": {"fingerprint": manifest.fingerprint, "voxel_size": manifest.voxel_size},
+        "created": manifest.created,
+        "updated": manifest.updated,
+        "entries": {i: manifest.entries[i].to_json() for i in manifest.ids},
+        "engine": manifest.engine,
+        "category": manifest.category,
+    }
+    (library_dir / "catalogue.sqlite").unlink()
+    write_format_2(library_dir, raw)
+    return raw
+
+
+def write_format_2(library_dir: Path, raw: dict[str, Any]) -> None:
+    (library_dir / "manifest.json").write_text(json.dumps(raw, indent=2) + "\n")
+
+
 def _snapshot(library_dir: Path) -> dict[str, bytes]:
     return {
         str(p.relative_to(library_dir)): p.read_bytes()
         for p in sorted(library_dir.rglob("*"))
-        if p.is_file() and p.name != ".lock"
+        if p.is_file() and p.name not in (".lock", ".writing")
     }
 
 
 @pytest.fixture
 def snapshot():
-    """Function: every file of a library (lock file aside) and its bytes."""
+    """Function: every file of a library (the writers' lock and mark aside) and its bytes."""
     return _snapshot

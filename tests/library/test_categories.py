@@ -1,9 +1,8 @@
 """Every library entry has a category: given, taken from its sub-folder, or a chair by default;
-libraries written before categories keep working."""
+libraries written before categories keep working once converted."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +12,16 @@ from typer.testing import CliRunner
 from catalign.cli import app
 from catalign.errors import InvalidInputError
 from catalign.library.index import add, build, info
+from catalign.library.legacy import migrate
 from catalign.library.loaded import load
 from catalign.library.sources import collect_sources, validate_category
-from tests.library.conftest import random_cloud, write_cloud
+from tests.library.conftest import (
+    as_format_2,
+    random_cloud,
+    stored,
+    write_cloud,
+    write_format_2,
+)
 
 runner = CliRunner()
 
@@ -71,8 +77,7 @@ def test_categories_are_stored_loaded_and_counted(tmp_path: Path, extractor) -> 
     assert library.of_category(None) is None
     with pytest.raises(InvalidInputError, match=r"'sofa'.*bench \(1\), chair \(1\), table \(2\)"):
         library.of_category("sofa")
-    records = json.loads((out / "manifest.json").read_text())["entries"]
-    assert records["t1"]["category"] == "table"
+    assert stored(out, "SELECT category FROM entries WHERE model_id = 't1'") == [("table",)]
 
 
 def test_a_library_written_before_categories_is_of_chairs_or_its_manifests(
@@ -80,13 +85,15 @@ def test_a_library_written_before_categories_is_of_chairs_or_its_manifests(
 ) -> None:
     out = tmp_path / "lib"
     build([write_cloud(tmp_path / "a.npy", random_cloud(1))], out, extractor, progress=False)
-    path = out / "manifest.json"
-    raw = json.loads(path.read_text())
+    raw = as_format_2(out)
     del raw["entries"]["a"]["category"]
-    path.write_text(json.dumps(raw))
+    write_format_2(out, raw)
+    migrate(out)
     assert load(out, extractor.fingerprint)["a"].category == "chair"
+    as_format_2(out)
     raw["category"] = "table"  # an older library may name its one category
-    path.write_text(json.dumps(raw))
+    write_format_2(out, raw)
+    migrate(out)
     assert info(out).categories() == {"table": 1}
     assert load(out, extractor.fingerprint)["a"].category == "table"
 

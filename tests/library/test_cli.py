@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
 from catalign.library.store import FORMAT_VERSION
+from tests.library.conftest import as_format_2, stored, write_format_2
 
 runner = CliRunner()
 
@@ -52,22 +53,25 @@ def test_errors_are_one_sentence_and_exit_code_2(tmp_path: Path) -> None:
 def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: Path) -> None:
     library = tmp_path / "lib"
     runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])
-    manifest = library / "manifest.json"
+    catalogue = library / "catalogue.sqlite"
+
+    def engine() -> dict:
+        return json.loads(stored(library, "SELECT engine FROM library")[0][0])
 
     set_ = runner.invoke(
         app, ["library", "configure", str(library), "--engine", "top_k=5", "--engine", "refine=2"]
     )
     assert set_.exit_code == 0, set_.output
     # stored as a tree, the flat name of earlier releases in its place
-    assert json.loads(manifest.read_text())["engine"] == {"top_k": 5, "icp": {"poses": 2}}
+    assert engine() == {"top_k": 5, "icp": {"poses": 2}}
     # a group is merged option by option, not replaced
     more = ("--engine", "icp.iterations=20", "--engine", "sweep.models=0")
     added = runner.invoke(app, ["library", "configure", str(library), *more])
     assert added.exit_code == 0, added.output
-    stored = {"top_k": 5, "icp": {"poses": 2, "iterations": 20}, "sweep": {"models": 0}}
-    assert json.loads(manifest.read_text())["engine"] == stored
+    options = {"top_k": 5, "icp": {"poses": 2, "iterations": 20}, "sweep": {"models": 0}}
+    assert engine() == options
     # a bad option is refused in one sentence and changes nothing
-    before = manifest.read_bytes()
+    before = catalogue.read_bytes()
     refusals = (
         ("bogus=1", "unknown engine option 'bogus'"),
         ("top_k=0", "top_k"),
@@ -76,7 +80,7 @@ def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: 
     for bad, said in refusals:
         refused = runner.invoke(app, ["library", "configure", str(library), "--engine", bad])
         assert refused.exit_code == 2 and said in refused.stderr, refused.output
-    assert manifest.read_bytes() == before
+    assert catalogue.read_bytes() == before
     # writers keep the options; info shows them; --clear drops them
     np.save(tmp_path / "beta.npy", procedural_shape(2).points.astype(np.float32))
     runner.invoke(app, ["library", "add", str(library), str(tmp_path / "beta.npy")])
@@ -87,15 +91,31 @@ def test_configure_sets_the_engine_options_the_library_is_served_with(tmp_path: 
     )
     cleared = runner.invoke(app, ["library", "configure", str(library), "--clear"])
     assert cleared.exit_code == 0 and "(the defaults)" in cleared.output
-    assert json.loads(manifest.read_text())["engine"] == {}
+    assert engine() == {}
 
 
-def test_a_manifest_without_engine_options_loads_with_none(tmp_path: Path) -> None:
+def test_a_library_of_the_older_format_is_refused_until_migrated(tmp_path: Path) -> None:
+    """Format 2 (manifest.json) is never misread: every command names the conversion, which
+    keeps the entry files byte for byte; one written before libraries carried engine options
+    converts with none."""
     library = tmp_path / "lib"
-    runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])
-    manifest = library / "manifest.json"
-    raw = json.loads(manifest.read_text())
+    runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "2"])
+    entries = {p.name: p.read_bytes() for p in (library / "entries").iterdir()}
+    raw = as_format_2(library)
     del raw["engine"]  # as written before libraries carried options
-    manifest.write_text(json.dumps(raw))
+    write_format_2(library, raw)
+    for command in (["info", str(library)], ["remove", str(library), "proc-0000"]):
+        refused = runner.invoke(app, ["library", *command])
+        assert refused.exit_code == 2, refused.output
+        said = " ".join(refused.stderr.split())  # one sentence, however the terminal wraps it
+        assert "holds a library of an older format (manifest.json)" in said
+        assert f"catalign library migrate {library}" in said and "Traceback" not in said
+    migrated = runner.invoke(app, ["library", "migrate", str(library)])
+    assert migrated.exit_code == 0 and "converted to format 3, 2 models" in migrated.output
+    assert not (library / "manifest.json").exists()
+    assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
+    again = runner.invoke(app, ["library", "migrate", str(library)])
+    assert again.exit_code == 0 and "already of format 3" in again.output
     info = runner.invoke(app, ["library", "info", str(library)])
     assert info.exit_code == 0 and "engine options: (the defaults)" in info.output
+    assert "models: 2" in info.output

@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import threading
 
 import numpy as np
@@ -29,6 +28,7 @@ from catalign.library.entry import (
     mesh_sha256,
 )
 from catalign.library.sources import SourceFile
+from tests.library.conftest import stored
 
 
 def referenced_files(library_dir) -> set[str]:
@@ -81,10 +81,10 @@ def test_build_from_a_folder_of_mixed_formats(mixed_folder, tmp_path, extractor)
     clouds = {"big", "points", "scan", "scan2"}
     assert manifest.ids == sorted(meshes | clouds)
 
-    on_disk = json.loads((out / "manifest.json").read_text())
-    assert on_disk["format_version"] == 2
-    assert on_disk["extractor"] == {"fingerprint": "fake-v1", "voxel_size": 0.05}
-    assert on_disk["created"] == on_disk["updated"] and on_disk["created"].endswith("+00:00")
+    query = "SELECT format_version, fingerprint, voxel_size, created, updated FROM library"
+    ((version, fingerprint, voxel_size, created, updated),) = stored(out, query)
+    assert (version, fingerprint, voxel_size) == (3, "fake-v1", 0.05)
+    assert created == updated and created.endswith("+00:00")
 
     lib = load(out, extractor.fingerprint)
     assert len(lib) == 9 and lib.ids == manifest.ids
@@ -137,11 +137,11 @@ def test_build_add_remove_reload_round_trip(files, tmp_path, extractor):
     lib_before = load(out, extractor.fingerprint)
 
     added = add(out, [files.cloud("c.xyz", 3)], extractor, ids=["c-1"], progress=False)
-    assert added.ids == ["a", "b", "c-1"] and added.created == first.created
-    removed = remove(out, ["a"])
-    assert removed.ids == ["b", "c-1"]
-    assert info(out) == removed and list_models(out) == ["b", "c-1"]
-    assert json.loads((out / "manifest.json").read_text()) == removed.to_json()
+    assert list(added) == ["c-1"]
+    assert info(out).ids == ["a", "b", "c-1"] and info(out).created == first.created
+    assert remove(out, ["a"]) == 2
+    assert list_models(out) == ["b", "c-1"]
+    assert info(out).entries == {"b": first.entries["b"], "c-1": added["c-1"]}  # as written
     assert entry_files(out) == referenced_files(out)  # a's file is gone
 
     lib = load(out, extractor.fingerprint)
@@ -185,8 +185,8 @@ def test_replace_swaps_the_entry_and_deletes_its_old_file(files, tmp_path, extra
     build([files.cloud("a.npy", 1), files.cloud("b.npy", 2)], out, extractor, progress=False)
     old = info(out).entries["a"]
     new_source = files.cloud("v2/a.npy", 7)
-    manifest = add(out, [new_source], extractor, replace=True, progress=False)
-    record = manifest.entries["a"]
+    record = add(out, [new_source], extractor, replace=True, progress=False)["a"]
+    assert info(out).entries["a"] == record
     assert record.file != old.file and not (out / old.file).exists()
     assert record.source_sha256 == hashlib.sha256(new_source.read_bytes()).hexdigest()
     assert entry_files(out) == referenced_files(out)
@@ -226,7 +226,7 @@ def test_a_shape_without_key_points_is_refused(files, tmp_path):
     files.cloud("a.npy", 1)
     with pytest.raises(InvalidInputError, match=r"a.npy: the extractor found no key points"):
         build([files.root], tmp_path / "lib", _EmptyExtractor(), progress=False)
-    assert not (tmp_path / "lib" / "manifest.json").exists()
+    assert not (tmp_path / "lib" / "catalogue.sqlite").exists()
 
 
 class _EmptyExtractor:

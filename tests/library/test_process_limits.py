@@ -40,7 +40,7 @@ def _load_with_limits(soft: int, hard: int) -> str:
     return done.stdout.strip()
 
 
-@pytest.mark.skipif(not (LIBRARY / "manifest.json").is_file(), reason="no shipped library")
+@pytest.mark.skipif(not (LIBRARY / "catalogue.sqlite").is_file(), reason="no shipped library")
 def test_the_open_files_limit_is_raised_or_the_library_refused_in_a_sentence() -> None:
     _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < 4096:

@@ -3,9 +3,9 @@ from __future__ import annotations
 import hashlib
 import inspect
 import io
-import json
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import textwrap
@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+import catalign.library.catalogue as catalogue
 import catalign.library.index as index
 import catalign.library.loaded as loaded
 import catalign.library.store as store
@@ -37,7 +38,8 @@ def small_library(files, tmp_path, extractor):
 def unreferenced(library_dir) -> set[str]:
     referenced = {r.file for r in info(library_dir).entries.values()}
     leftovers = {f"entries/{p.name}" for p in (library_dir / "entries").iterdir()}
-    leftovers |= {p.name for p in library_dir.glob(".manifest.json.*")}
+    leftovers |= {p.name for p in library_dir.glob(".catalogue.sqlite.*")}
+    leftovers |= {p.name for p in library_dir.glob("*-journal")}
     return leftovers - referenced
 
 
@@ -63,19 +65,15 @@ def test_loaded_entries_view_their_files_so_processes_share_them(small_library, 
     np.testing.assert_array_equal(entry.features, expected)
 
 
-def test_crash_before_the_manifest_keeps_the_old_library(
+def test_crash_before_the_catalogue_commits_keeps_the_old_library(
     small_library, files, extractor, snapshot, monkeypatch
 ):
     before = snapshot(small_library)
 
-    real_write = store.atomic_write_bytes
-
-    def crash(path, data, **kwargs):
-        if path.name != "manifest.json":  # entry files are written; the manifest never is
-            return real_write(path, data, **kwargs)
+    def crash(*args, **kwargs):  # entry files are written; the catalogue never is
         raise Crash
 
-    monkeypatch.setattr(store, "atomic_write_bytes", crash)
+    monkeypatch.setattr(catalogue, "update", crash)
     with pytest.raises(Crash):
         add(small_library, [files.cloud("c.npy", 3)], extractor, progress=False)
     with pytest.raises(Crash):
@@ -96,25 +94,27 @@ def test_crash_before_the_manifest_keeps_the_old_library(
 def test_a_failed_write_cleans_up_at_once(small_library, files, extractor, snapshot, monkeypatch):
     before = snapshot(small_library)
 
-    real_write = store.atomic_write_bytes
-
-    def fail(path, data, **kwargs):
-        if path.name != "manifest.json":
-            return real_write(path, data, **kwargs)
+    def fail(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(store, "atomic_write_bytes", fail)
+    monkeypatch.setattr(catalogue, "update", fail)
     with pytest.raises(OSError, match="disk full"):
         add(small_library, [files.cloud("c.npy", 3)], extractor, progress=False)
     assert snapshot(small_library) == before
 
 
 def test_leftover_temporary_files_are_ignored_and_cleaned(small_library, files, extractor):
+    """What a killed writer leaves is swept by the next writer, which finds its mark; a write
+    after one that finished does not list the entries folder (10^5 files at scale)."""
     (small_library / "entries" / ".a-000000000000.npz.123.tmp").write_bytes(b"half")
-    (small_library / ".manifest.json.123.tmp").write_bytes(b"{")
+    (small_library / ".catalogue.sqlite.123.tmp").write_bytes(b"half")
     assert load(small_library, extractor.fingerprint).ids == ["a", "b"]
     remove(small_library, ["b"])
+    assert len(unreferenced(small_library)) == 2  # no mark: nobody died mid-write
+    (small_library / ".writing").write_bytes(b"")  # the mark a killed writer leaves
+    add(small_library, [files.root / "b.npy"], extractor, progress=False)
     assert unreferenced(small_library) == set()
+    assert not (small_library / ".writing").exists()
 
 
 _WRITER = """
@@ -221,7 +221,7 @@ def test_a_reader_loads_the_new_manifest_when_a_writer_deleted_an_entry_under_it
 def test_an_entry_removed_and_added_back_within_a_second_is_not_corruption(
     small_library, files, extractor, monkeypatch
 ):
-    manifest = (small_library / "manifest.json").read_bytes()
+    manifest, stamp = info(small_library), store.manifest_stamp(small_library)
     monkeypatch.setattr(index, "utc_now", lambda: info(small_library).updated)  # same second
     _write_while_reading(
         monkeypatch,
@@ -230,38 +230,30 @@ def test_an_entry_removed_and_added_back_within_a_second_is_not_corruption(
         lambda: add(small_library, [files.root / "b.npy"], extractor, progress=False),
     )
     assert load(small_library, extractor.fingerprint).ids == ["a", "b"]
-    assert (small_library / "manifest.json").read_bytes() == manifest  # the very same bytes
+    assert info(small_library) == manifest  # the very same records and dates
+    assert store.manifest_stamp(small_library) != stamp  # two writes later
 
 
-def test_garbage_manifest(small_library, extractor):
-    (small_library / "manifest.json").write_bytes(b"\x00\xffnot json")
-    with pytest.raises(LibraryCorruptError, match=r"manifest.json is not valid JSON"):
-        load(small_library, extractor.fingerprint)
-    (small_library / "manifest.json").write_text("[1, 2]")
-    with pytest.raises(LibraryCorruptError, match="not a catalign library manifest"):
-        load(small_library, extractor.fingerprint)
-
-
-def test_missing_manifest(tmp_path, extractor):
+def test_missing_catalogue(tmp_path, extractor):
     with pytest.raises(LibraryError, match=r"no library at .*catalign library build"):
         load(tmp_path / "nowhere", extractor.fingerprint)
-    with pytest.raises(LibraryError, match=r"holds no manifest.json"):
+    with pytest.raises(LibraryError, match=r"holds no catalogue.sqlite"):
         load(tmp_path, extractor.fingerprint)
 
 
-def _edit_manifest(library_dir, edit) -> None:
-    path = library_dir / "manifest.json"
-    data = json.loads(path.read_text())
-    edit(data)
-    path.write_text(json.dumps(data))
+def _edit_catalogue(library_dir, statement: str, *parameters) -> None:
+    """Change the catalogue by hand, as a user with the sqlite3 shell could."""
+    connection = sqlite3.connect(library_dir / "catalogue.sqlite")
+    with connection:
+        connection.execute(statement, parameters)
+    connection.close()
 
 
-@pytest.mark.parametrize("version", [99, 1])
+@pytest.mark.parametrize("version", [99, 2, 1])
 def test_unknown_format_version(small_library, extractor, version):
-    """Version 1 (entries without distance grids) is refused like any other, with the
-    command that rebuilds it."""
-    _edit_manifest(small_library, lambda m: m.update(format_version=version))
-    expected = rf"format version {version}.*reads version 2.*library build .* --overwrite"
+    """Any other version is refused, with the command that rebuilds it."""
+    _edit_catalogue(small_library, "UPDATE library SET format_version = ?", version)
+    expected = rf"format version {version}.*reads version 3.*library build .* --overwrite"
     with pytest.raises(LibraryCorruptError, match=expected):
         load(small_library, extractor.fingerprint)
 
@@ -295,30 +287,43 @@ def test_an_entry_without_a_grid_is_corrupt(small_library, extractor):
 
 
 def _replace_entry(library_dir, model_id: str, data: bytes) -> None:
-    """Write ``data`` over an entry's file and make the manifest's checksum match it."""
+    """Write ``data`` over an entry's file and make the catalogue's checksum match it."""
     record = info(library_dir).entries[model_id]
     (library_dir / record.file).write_bytes(data)
     sha256 = hashlib.sha256(data).hexdigest()
     new_file = store.entry_file_name(model_id, sha256)
     (library_dir / record.file).rename(library_dir / new_file)
-    _edit_manifest(
-        library_dir, lambda m: m["entries"][model_id].update(sha256=sha256, file=new_file)
+    _edit_catalogue(
+        library_dir,
+        "UPDATE entries SET sha256 = ?, file = ? WHERE model_id = ?",
+        sha256,
+        new_file,
+        model_id,
     )
 
 
 @pytest.mark.parametrize(
-    "edit",
+    ("statement", "problem"),
     [
-        lambda m: m["entries"]["a"].update(file="../../etc/passwd"),
-        lambda m: m["entries"]["a"].pop("sha256"),
-        lambda m: m["entries"]["a"].update(num_points="many"),
-        lambda m: m["extractor"].pop("fingerprint"),
-        lambda m: m["entries"]["a"].update(num_points=7),
+        ("UPDATE entries SET file = '../../etc/passwd' WHERE model_id = 'a'", "does not match"),
+        ("UPDATE entries SET sha256 = 'cafe' WHERE model_id = 'a'", "not a hex sha256"),
+        ("UPDATE entries SET num_points = 'many' WHERE model_id = 'a'", "num_points is str"),
+        ("UPDATE entries SET size_y = NULL WHERE model_id = 'a'", "NOT NULL"),
+        ("UPDATE entries SET category = 'Chairs!' WHERE model_id = 'a'", "not a valid category"),
+        ("UPDATE entries SET symmetry = -2 WHERE model_id = 'a'", "not an order"),
+        ("UPDATE library SET fingerprint = x'07'", "unexpected bytes"),
+        ("UPDATE library SET engine = '[1, 2]'", "unexpected list"),
+        ("DROP TABLE entries", "no such table"),
+        ("UPDATE entries SET num_points = 7 WHERE model_id = 'a'", "point counts"),
     ],
 )
-def test_tampered_manifest(small_library, extractor, edit):
-    _edit_manifest(small_library, edit)
-    with pytest.raises(LibraryCorruptError):
+def test_tampered_catalogue(small_library, extractor, statement, problem):
+    try:
+        _edit_catalogue(small_library, statement)
+    except sqlite3.IntegrityError as refused:  # SQLite itself keeps some rules
+        assert problem in str(refused)
+        return
+    with pytest.raises(LibraryCorruptError, match=problem):
         load(small_library, extractor.fingerprint)
 
 

@@ -1,10 +1,9 @@
-"""Every entry's symmetry about its up is found when it is described, kept in the manifest and
+"""Every entry's symmetry about its up is found when it is described, kept in the catalogue and
 read back; a library written before symmetries gets them found again when it is loaded. A new
 entry without a category gets the library's default category."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +11,15 @@ import trimesh
 
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.index import add, build, info
+from catalign.library.legacy import migrate
 from catalign.library.loaded import load
-from tests.library.conftest import random_cloud, write_cloud
+from tests.library.conftest import (
+    as_format_2,
+    random_cloud,
+    stored,
+    write_cloud,
+    write_format_2,
+)
 
 
 def _table_cloud(path: Path, length: float, width: float) -> Path:
@@ -36,8 +42,8 @@ def test_symmetries_are_found_stored_and_read_back(tmp_path: Path, extractor) ->
     write_cloud(src / "chair" / "lumpy.npy", random_cloud(1) * np.array([1.0, 1.0, 0.3]))
     out = tmp_path / "lib"
     build([src], out, extractor, progress=False)
-    records = json.loads((out / "manifest.json").read_text())["entries"]
-    assert (records["long"]["symmetry"], records["square"]["symmetry"]) == (2, 4)
+    orders = dict(stored(out, "SELECT model_id, symmetry FROM entries"))
+    assert (orders["long"], orders["square"]) == (2, 4)
     library = load(out, extractor.fingerprint)
     assert library.symmetry("long") == YawSymmetry(2)
     assert library["square"].symmetry == YawSymmetry(4)
@@ -48,10 +54,10 @@ def test_a_library_written_before_symmetries_finds_them_when_loaded(
 ) -> None:
     out = tmp_path / "lib"
     build([_table_cloud(tmp_path / "long.npy", 1.4, 0.8)], out, extractor, progress=False)
-    path = out / "manifest.json"
-    raw = json.loads(path.read_text())
+    raw = as_format_2(out)
     del raw["entries"]["long"]["symmetry"]
-    path.write_text(json.dumps(raw))
+    write_format_2(out, raw)
+    migrate(out)
     assert info(out).entries["long"].symmetry is None
     assert load(out, extractor.fingerprint).symmetry("long") == YawSymmetry(2)
 
@@ -61,10 +67,11 @@ def test_an_entry_added_without_a_category_gets_the_librarys(tmp_path: Path, ext
     first = write_cloud(tmp_path / "t1.npy", random_cloud(1))
     manifest = build([first], out, extractor, category="table", progress=False)
     assert manifest.category == "table"
-    assert json.loads((out / "manifest.json").read_text())["category"] == "table"
+    assert stored(out, "SELECT category FROM library") == [("table",)]
     src = tmp_path / "more"
     write_cloud(src / "t2.npy", random_cloud(2))
     write_cloud(src / "bench" / "b1.npy", random_cloud(3))
-    added = add(out, [src], extractor, progress=False)
+    add(out, [src], extractor, progress=False)
+    added = info(out)
     assert added.categories() == {"bench": 1, "table": 2}  # the sub-folder still names its own
     assert added.category == "table"

@@ -3,8 +3,9 @@ belong to the shard, nothing else.
 
 A shard named for a category gets that category's entries, and entries added to it without a
 category become that category; the shard ``default`` gets every entry whose category has no
-shard of its own. A volume that already holds a library is left alone. Entries are written
-first (temporary name, fsync, rename), the manifest last, by the library's own commit.
+shard of its own. A volume that already holds a library is left alone (one of the older
+format, ``manifest.json``, is converted in place). Entries are written first (temporary name,
+fsync, rename), the catalogue last, by the library's own commit.
 
 Environment: ``SHARD`` (this shard's name, from the pod's ``catalign/shard`` label), ``SHARDS``
 (the categories that have a shard of their own, separated by spaces), ``CATALIGN_LIBRARY`` (the
@@ -19,7 +20,16 @@ import sys
 from pathlib import Path
 
 from catalign.atomic import atomic_write_bytes
-from catalign.library.store import commit, has_manifest, read_manifest, utc_now
+from catalign.library.legacy import migrate
+from catalign.library.store import (
+    CATALOGUE_NAME,
+    begin_write,
+    commit,
+    has_manifest,
+    read_manifest,
+    utc_now,
+    writer_lock,
+)
 
 DEFAULT_SHARD = "default"
 
@@ -35,6 +45,9 @@ def main() -> int:
         )
         return 2
     if has_manifest(target):
+        if not (target / CATALOGUE_NAME).is_file():
+            migrate(target)
+            print(f"converted the library in {target} to the current format")
         print(f"library present in {target}; not seeding")
         return 0
     image = read_manifest(source)
@@ -44,15 +57,17 @@ def main() -> int:
     else:
         entries = {i: r for i, r in image.entries.items() if r.category == shard}
         category = shard
-    for record in entries.values():
-        atomic_write_bytes(
-            target / record.file, (source / record.file).read_bytes(), sync_directory=False
+    with writer_lock(target):
+        begin_write(target)
+        for record in entries.values():
+            atomic_write_bytes(
+                target / record.file, (source / record.file).read_bytes(), sync_directory=False
+            )
+        now = utc_now()
+        manifest = dataclasses.replace(
+            image, entries=entries, category=category, created=now, updated=now
         )
-    now = utc_now()
-    commit(
-        target,
-        dataclasses.replace(image, entries=entries, category=category, created=now, updated=now),
-    )
+        commit(target, manifest)
     kept = f"{len(entries)} of the image's {len(image.entries)} models"
     print(f"seeded {target} with {kept} for shard {shard}")
     return 0

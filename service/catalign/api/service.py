@@ -6,11 +6,11 @@ is written with :mod:`catalign.library` (atomic on disk), the library is loaded 
 :class:`Served` (the extractor, the library and, where registrations run on the server's own
 threads, an :class:`~catalign.registration.engine.Engine`; worker processes build their own)
 replaces the old one in a single assignment, so requests already running finish on the library
-they started with. Changes made by another
-process (``catalign library add`` on the served folder) are noticed by the manifest's file stamp
-and loaded before the next request that reads the library. Every registration runs under a
-:class:`~catalign.deadline.Deadline` of ``deadline_s`` from its arrival, so neither a slow
-request nor a client that went away holds a worker longer than that. torch and open3d are
+they started with. Changes made by another process (``catalign library add`` on the served
+folder) are noticed by the catalogue's stamp (its generation, one more at every committed
+write) and loaded before the next request that reads the library. Every registration runs
+under a :class:`~catalign.deadline.Deadline` of ``deadline_s`` from its arrival, so neither a
+slow request nor a client that went away holds a worker longer than that. torch and open3d are
 imported only when the service loads, never by the HTTP layer itself.
 """
 
@@ -38,7 +38,7 @@ from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
 from catalign.deadline import Deadline
 from catalign.errors import CatalignError, ConfigError, DeadlineExceededError
-from catalign.library.store import manifest_stamp
+from catalign.library.store import Stamp, manifest_stamp
 from catalign.paths import category_companions
 from catalign.registration.config import served_config
 from catalign.threads import limit_threads, release_free_memory
@@ -75,7 +75,7 @@ class RegistrationService:
         self._pool: WorkPool | None = None
         self._processes: EngineProcesses | None = None
         self._changes = asyncio.Lock()
-        self._stamp: tuple[int, int, int] | None = None
+        self._stamp: Stamp | None = None
         self.spool = Spool(settings.spool_dir, library=settings.library)
 
     # life cycle -------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ Every finished entry is appended to a journal in the library folder
 (``.build-journal.jsonl``: a header that names what the entries depend on, then one record per
 line, each flushed and fsynced). A build run again with the same sources, weights and options
 reads it and skips each entry whose file is still there with its checksum and whose source file
-has not changed; the journal goes once the manifest that references the entries is committed.
+has not changed; the journal goes once the catalogue that references the entries is committed.
 A torn last line (the build killed mid-write) is ignored.
 """
 
@@ -54,7 +54,7 @@ class Job:
 
 
 class BuildJournal:
-    """The entries a build has finished, kept beside them until the manifest names them."""
+    """The entries a build has finished, kept beside them until the catalogue names them."""
 
     def __init__(self, library_dir: Path, depends_on: Mapping[str, Any]) -> None:
         self.path = library_dir / JOURNAL_NAME
@@ -87,7 +87,7 @@ class BuildJournal:
         self._write_line(line)
 
     def done(self) -> None:
-        """The manifest holds every entry now: the journal is not needed any more."""
+        """The catalogue holds every entry now: the journal is not needed any more."""
         self.close()
         self.path.unlink(missing_ok=True)
 

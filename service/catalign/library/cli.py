@@ -1,4 +1,4 @@
-"""``catalign library ...``: build, extend, prune and inspect CAD library indexes.
+"""``catalign library ...``: build, extend, prune, inspect and convert CAD library indexes.
 
 Every command takes ``--model-dir`` (the feature extractor's weights, default ``model_store/``)
 where features are computed; an error the library detects prints one sentence, exit code 2.
@@ -19,7 +19,7 @@ from catalign.cli_support import EngineOptions, exit_on_error
 app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
-    help="Build, extend, prune and inspect CAD libraries.",
+    help="Build, extend, prune, inspect and convert CAD libraries.",
 )
 
 ModelDir = Annotated[Path | None, typer.Option(help="Extractor weights (default: model_store/).")]
@@ -70,7 +70,7 @@ def build(
             workers=workers or os.cpu_count() or 1,
         )
     typer.echo(
-        f"built {out}: {len(manifest.entries)} models ({_counts(manifest)}) "
+        f"built {out}: {len(manifest.entries)} models ({_counts(manifest.categories())}) "
         f"{_rate(len(manifest.entries), started)}"
     )
 
@@ -121,9 +121,10 @@ def add(
 ) -> None:
     """Add models to a library without rebuilding it."""
     from catalign.library.index import add as add_entries
+    from catalign.library.store import category_counts
 
     with exit_on_error():
-        manifest = add_entries(
+        add_entries(
             library,
             sources,
             _extractor(model_dir),
@@ -131,7 +132,8 @@ def add(
             category=category,
             replace=replace,
         )
-    typer.echo(f"{library}: {len(manifest.entries)} models ({_counts(manifest)})")
+        counts = category_counts(library)
+    typer.echo(f"{library}: {sum(counts.values())} models ({_counts(counts)})")
 
 
 @app.command()
@@ -143,8 +145,8 @@ def remove(
     from catalign.library.index import remove as remove_entries
 
     with exit_on_error():
-        manifest = remove_entries(library, ids)
-    typer.echo(f"{library}: {len(manifest.entries)} models")
+        left = remove_entries(library, ids)
+    typer.echo(f"{library}: {left} models")
 
 
 @app.command()
@@ -162,8 +164,8 @@ def configure(
 
     with exit_on_error():
         options = parse_options(engine or ()).model_dump(exclude_unset=True)
-        manifest = configure_library(library, options, clear=clear, combine=stored_options)
-    typer.echo(f"{library}: engine options {_options(manifest.engine)}")
+        stored = configure_library(library, options, clear=clear, combine=stored_options)
+    typer.echo(f"{library}: engine options {_options(stored)}")
 
 
 @app.command("list")
@@ -178,7 +180,7 @@ def list_command(library: Annotated[Path, typer.Argument(help="Library folder.")
 
 @app.command()
 def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> None:
-    """Print the manifest summary: format, extractor, dates, size."""
+    """Print the catalogue's summary: format, extractor, dates, size."""
     from catalign.library.index import info as read_info
 
     with exit_on_error():
@@ -187,9 +189,30 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
         f"library: {library}\nformat: {manifest.format_version}\n"
         f"extractor: {manifest.fingerprint} (voxel {manifest.voxel_size} m)\n"
         f"created: {manifest.created}\nupdated: {manifest.updated}\n"
-        f"models: {len(manifest.entries)}\ncategories: {_counts(manifest) or '(none)'} "
+        f"models: {len(manifest.entries)}\n"
+        f"categories: {_counts(manifest.categories()) or '(none)'} "
         f"(default {manifest.category})\nsymmetric about up: {_symmetric(manifest)}\n"
         f"engine options: {_options(manifest.engine)}"
+    )
+
+
+@app.command()
+def migrate(
+    library: Annotated[Path, typer.Argument(help="Library folder of the older format.")],
+) -> None:
+    """Convert a library of the older format (manifest.json) in place: its entry files stay
+    as they are, its catalogue becomes catalogue.sqlite. Safe to interrupt and run again."""
+    from catalign.library.catalogue_db import LEGACY_MANIFEST_NAME
+    from catalign.library.legacy import migrate as migrate_library
+    from catalign.library.store import CATALOGUE_NAME
+
+    with exit_on_error():
+        converting = not (library / CATALOGUE_NAME).is_file()
+        manifest = migrate_library(library)
+    done = "converted to" if converting else "already of"
+    typer.echo(
+        f"{library}: {done} format {manifest.format_version}, {len(manifest.entries)} models"
+        + (f" ({LEGACY_MANIFEST_NAME} removed)" if converting else "")
     )
 
 
@@ -205,9 +228,9 @@ def _symmetric(manifest: Any) -> str:
     return text + (f", {unknown} not yet known (found when loaded)" if unknown else "")
 
 
-def _counts(manifest: Any) -> str:
+def _counts(counts: dict[str, int]) -> str:
     """``chair 60, table 12``: the entries of each category."""
-    return ", ".join(f"{name} {count}" for name, count in manifest.categories().items())
+    return ", ".join(f"{name} {count}" for name, count in counts.items())
 
 
 def _options(engine: dict[str, Any], prefix: str = "") -> str:

@@ -2,8 +2,10 @@
 (reading it is :mod:`catalign.library.loaded`'s).
 
 Writers describe their shapes under the library's lock and stream each entry to its own file,
-then commit a new manifest (see :mod:`catalign.library.store` for why a crash never leaves a
-half-written library); :func:`configure` sets the engine options the library is served with.
+then commit: a build its whole catalogue, an add or a remove only the rows it changes, so that
+neither reads nor writes the other entries of a large library (see
+:mod:`catalign.library.store` for why a crash never leaves a half-written library);
+:func:`configure` sets the engine options the library is served with.
 
 Poses found against an entry map the entry's stored coordinates, i.e. its *source coordinates
 converted to metres* (``source * unit_factor(units)``), into the observation.
@@ -11,12 +13,11 @@ converted to metres* (``source * unit_factor(units)``), into the observation.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from catalign.data.shapes import procedural_id
 from catalign.errors import (
@@ -31,10 +32,14 @@ from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_fac
 from catalign.library.store import (
     EntryRecord,
     Manifest,
-    clean_unreferenced,
+    begin_write,
     commit,
+    commit_changes,
+    count_entries,
     has_manifest,
+    list_ids,
     read_manifest,
+    sweep,
     utc_now,
     writer_lock,
 )
@@ -43,6 +48,7 @@ if TYPE_CHECKING:  # the extractor module imports torch; the index only needs it
     from catalign.features.extractor import FeatureExtractor
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def build(
@@ -62,9 +68,10 @@ def build(
 
     Every entry is of ``category``; without it, of the sub-folder it sits in under a named
     folder, else a chair (:func:`~catalign.library.sources.collect_sources`). Refuses a
-    directory that already holds a library unless ``overwrite``; the old library stays usable
-    until the new manifest replaces it. ``workers`` processes describe the shapes; a build
-    killed half-way and run again resumes (:mod:`catalign.library.builder`).
+    directory that already holds a library (of this format or the one before) unless
+    ``overwrite``; the old library stays usable until the new catalogue is committed.
+    ``workers`` processes describe the shapes; a build killed half-way and run again resumes
+    (:mod:`catalign.library.builder`).
     """
     unit_factor(units)
     found = collect_sources(sources, ids, category)
@@ -77,11 +84,10 @@ def build(
         )
         for s in found
     ]
-    return _write(
+    return _build(
         Path(out_dir),
         extractor,
         jobs,
-        fresh=True,
         overwrite=overwrite,
         progress=progress,
         category=category or DEFAULT_CATEGORY,
@@ -114,13 +120,13 @@ def build_procedural(
         )
         for seed in range(first_seed, first_seed + count)
     ]
-    return _write(
+    return _build(
         Path(out_dir),
         extractor,
         jobs,
-        fresh=True,
         overwrite=overwrite,
         progress=progress,
+        category=DEFAULT_CATEGORY,
         workers=workers,
         depends=depends_on(extractor, procedural=True, num_points=num_points),
     )
@@ -139,11 +145,13 @@ def add(
     num_points: int = SURFACE_POINTS,
     source_name: str | None = None,
     max_points: int | None = None,
-) -> Manifest:
-    """Add entries to an existing library, or with ``replace`` replace those whose id exists.
+) -> dict[str, EntryRecord]:
+    """Add entries to an existing library, or with ``replace`` replace those whose id exists;
+    returns the records written, by id (not the whole library: at 10^5 entries reading every
+    record costs more than the add).
 
     ``category`` is as :func:`build`'s; without it, a file not in a category's sub-folder gets
-    the library's default category (its manifest's ``category``). Adding an id the library
+    the library's default category (its catalogue's ``category``). Adding an id the library
     already holds without ``replace`` raises InvalidInputError and changes nothing.
     ``source_name`` is recorded as the source of a single added file instead of its path (the
     service names uploads so, not by their temporary files); files with more than
@@ -151,8 +159,8 @@ def add(
     """
     library_dir = Path(library_dir)
     unit_factor(units)
-    current = read_manifest(library_dir)  # no library: fail before the lock creates any file
-    found = collect_sources(sources, ids, category, default=current.category)
+    header = read_manifest(library_dir, ids=())  # no library: fail before the lock creates a file
+    found = collect_sources(sources, ids, category, default=header.category)
     if source_name is not None and len(found) != 1:
         raise InvalidInputError(f"source_name names one file, but {len(found)} were given")
     jobs = [
@@ -171,28 +179,40 @@ def add(
         )
         for s in found
     ]
-    return _write(library_dir, extractor, jobs, fresh=False, replace=replace, progress=progress)
+    with writer_lock(library_dir):
+        current = read_manifest(library_dir, ids=[job.model_id for job in jobs])
+        check_fingerprint(current, extractor.fingerprint, library_dir)
+        _check_new_ids(current, jobs, replace, library_dir)
+        now = utc_now()
+
+        def commit_added(records: dict[str, EntryRecord]) -> dict[str, EntryRecord]:
+            commit_changes(library_dir, put=records, updated=now)
+            return records
+
+        records = _describe(library_dir, extractor, jobs, commit_added, progress=progress)
+    logger.info("wrote %d model(s) to %s", len(records), library_dir)
+    return records
 
 
-def remove(library_dir: str | Path, ids: Sequence[str]) -> Manifest:
-    """Remove entries by id; an unknown id raises ModelNotFoundError and changes nothing."""
+def remove(library_dir: str | Path, ids: Sequence[str]) -> int:
+    """Remove entries by id and return how many are left; an unknown id raises
+    ModelNotFoundError and changes nothing."""
     library_dir = Path(library_dir)
-    ids = [ids] if isinstance(ids, str) else list(ids)
+    ids = list(dict.fromkeys([ids] if isinstance(ids, str) else ids))
     if not ids:
         raise InvalidInputError("no model ids given to remove")
-    read_manifest(library_dir)
+    read_manifest(library_dir, ids=())  # no library: fail before the lock creates a file
     with writer_lock(library_dir):
-        current = read_manifest(library_dir)
+        current = read_manifest(library_dir, ids=ids)
         missing = [i for i in ids if i not in current.entries]
         if missing:
             raise ModelNotFoundError(
-                f"no model {missing[0]!r} in the library ({len(current.entries)} models)"
+                f"no model {missing[0]!r} in the library ({count_entries(library_dir)} models)"
             )
-        kept = {i: r for i, r in current.entries.items() if i not in set(ids)}
-        manifest = dataclasses.replace(current, updated=utc_now(), entries=kept)
-        commit(library_dir, manifest)
-    logger.info("removed %d model(s) from %s; %d left", len(ids), library_dir, len(kept))
-    return manifest
+        commit_changes(library_dir, drop=ids, updated=utc_now())
+        left = count_entries(library_dir)
+    logger.info("removed %d model(s) from %s; %d left", len(ids), library_dir, left)
+    return left
 
 
 def configure(
@@ -201,97 +221,106 @@ def configure(
     *,
     clear: bool = False,
     combine: Callable[[dict[str, Any], Mapping[str, Any]], dict[str, Any]] | None = None,
-) -> Manifest:
-    """Set engine options the library is served with (``clear``: drop the ones it had first);
-    the entries are untouched. The library stores the options as plain data; ``combine``, given
-    the options it has and the new ones, returns those to store or refuses bad ones before
-    anything is written (the command line merges and checks them as the engine's
-    configuration, which this layer does not import; without it the new ones replace the old
-    key by key)."""
+) -> dict[str, Any]:
+    """Set engine options the library is served with (``clear``: drop the ones it had first)
+    and return those it now has; the entries are untouched. The library stores the options as
+    plain data; ``combine``, given the options it has and the new ones, returns those to store
+    or refuses bad ones before anything is written (the command line merges and checks them as
+    the engine's configuration, which this layer does not import; without it the new ones
+    replace the old key by key)."""
     library_dir = Path(library_dir)
+    read_manifest(library_dir, ids=())  # no library: fail before the lock creates a file
     with writer_lock(library_dir):
-        current = read_manifest(library_dir)
+        current = read_manifest(library_dir, ids=())
         had = {} if clear else dict(current.engine)
         engine = had | dict(options) if combine is None else combine(had, options)
-        manifest = dataclasses.replace(current, updated=utc_now(), engine=engine)
-        commit(library_dir, manifest)
+        commit_changes(library_dir, updated=utc_now(), engine=engine)
     logger.info("library %s served with engine options %s", library_dir, engine or "(defaults)")
-    return manifest
+    return engine
 
 
 def info(library_dir: str | Path) -> Manifest:
-    """The manifest (extractor, timestamps, one record per entry) without reading any array."""
+    """The catalogue (extractor, timestamps, one record per entry) without reading any
+    array."""
     return read_manifest(Path(library_dir))
 
 
 def list_models(library_dir: str | Path) -> list[str]:
-    """Sorted model ids of a library, from its manifest alone."""
-    return info(library_dir).ids
+    """Sorted model ids of a library, from its catalogue alone."""
+    return list_ids(Path(library_dir))
 
 
-def _write(
+def _build(
     library_dir: Path,
     extractor: FeatureExtractor,
     jobs: list[Job],
     *,
-    fresh: bool,
-    overwrite: bool = False,
-    replace: bool = False,
+    overwrite: bool,
     progress: bool,
-    category: str = DEFAULT_CATEGORY,
-    workers: int = 1,
-    depends: dict[str, Any] | None = None,
+    category: str,
+    workers: int,
+    depends: dict[str, Any],
 ) -> Manifest:
-    """Describe ``jobs`` and commit them: a new library (``fresh``, whose entries added later
-    without a category are of ``category``, journalled when ``depends`` names what its entries
-    depend on, so that a killed build resumes) or onto the current one."""
-    written: set[str] = set()
-    journal: BuildJournal | None = None
+    """Describe ``jobs`` into a new library whose entries added later without a category are
+    of ``category``, journalled by what its entries depend on (``depends``), so that a killed
+    build resumes."""
     with writer_lock(library_dir):
-        now = utc_now()
-        if fresh:
-            if has_manifest(library_dir) and not overwrite:
-                raise LibraryError(
-                    f"{library_dir} already holds a library; pass overwrite=True (--overwrite) "
-                    "to replace it, or add to it with `catalign library add`"
-                )
-            records: dict[str, EntryRecord] = {}
-            created, engine = now, {}
-            if depends is not None:
-                journal = BuildJournal(library_dir, depends)
-        else:
-            current = read_manifest(library_dir)
-            check_fingerprint(current, extractor.fingerprint, library_dir)
-            _check_new_ids(current, jobs, replace, library_dir)
-            records = dict(current.entries)
-            created, engine = current.created, current.engine
-            category = current.category
-        try:
-            described = describe_all(
-                library_dir, jobs, extractor, workers=workers, journal=journal, progress=progress
+        if has_manifest(library_dir) and not overwrite:
+            raise LibraryError(
+                f"{library_dir} already holds a library; pass overwrite=True (--overwrite) "
+                "to replace it, or add to it with `catalign library add`"
             )
-            for job, record in described:
-                written.add(record.file)
-                records[job.model_id] = record
-                logger.debug("described %s from %s", job.model_id, job.label)
+        now = utc_now()
+        journal = BuildJournal(library_dir, depends)
+
+        def commit_all(records: dict[str, EntryRecord]) -> Manifest:
             manifest = Manifest(
                 fingerprint=extractor.fingerprint,
                 voxel_size=float(extractor.voxel_size),
-                created=created,
+                created=now,
                 updated=now,
                 entries=records,
-                engine=engine,
                 category=category,
             )
             commit(library_dir, manifest)
-            if journal is not None:
-                journal.done()
-        except Exception:
-            if journal is None:  # a journalled build keeps its entries for the next run
-                _clean_after_failure(library_dir, written)
-            raise
-    logger.info("wrote %d model(s) to %s; %d in all", len(jobs), library_dir, len(records))
+            return manifest
+
+        manifest = _describe(
+            library_dir, extractor, jobs, commit_all, progress, workers=workers, journal=journal
+        )
+        journal.done()
+    logger.info("wrote %d model(s) to %s", len(jobs), library_dir)
     return manifest
+
+
+def _describe(
+    library_dir: Path,
+    extractor: FeatureExtractor,
+    jobs: list[Job],
+    then: Callable[[dict[str, EntryRecord]], T],
+    progress: bool,
+    *,
+    workers: int = 1,
+    journal: BuildJournal | None = None,
+) -> T:
+    """Describe ``jobs``, write their entry files and hand their records to ``then``, which
+    commits them; a failure that is not journalled tidies at once what it wrote."""
+    written: set[str] = set()
+    records: dict[str, EntryRecord] = {}
+    begin_write(library_dir)
+    try:
+        described = describe_all(
+            library_dir, jobs, extractor, workers=workers, journal=journal, progress=progress
+        )
+        for job, record in described:
+            written.add(record.file)
+            records[job.model_id] = record
+            logger.debug("described %s from %s", job.model_id, job.label)
+        return then(records)
+    except Exception:
+        if journal is None:  # a journalled build keeps its entries for the next run
+            _clean_after_failure(library_dir, written)
+        raise
 
 
 def _check_new_ids(
@@ -309,14 +338,12 @@ def _check_new_ids(
 
 
 def _clean_after_failure(library_dir: Path, written: set[str]) -> None:
-    """Best effort: drop files a failed write left, keeping all the current manifest uses."""
+    """Best effort: drop files a failed write left, keeping all the committed catalogue uses."""
     try:
         try:
-            current = read_manifest(library_dir)
-        except LibraryError:  # no (usable) manifest: only delete what this write created
+            sweep(library_dir)
+        except LibraryError:  # no (usable) catalogue: only delete what this write created
             for name in written:
                 (library_dir / name).unlink(missing_ok=True)
-            return
-        clean_unreferenced(library_dir, {r.file for r in current.entries.values()})
     except OSError as exc:
         logger.warning("could not clean up after a failed write to %s: %s", library_dir, exc)

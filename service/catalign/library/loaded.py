@@ -21,14 +21,21 @@ from catalign.errors import (
 )
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
-from catalign.library.store import Manifest, read_entry, read_manifest_bytes, rebuild_hint
+from catalign.library.store import (
+    Manifest,
+    Stamp,
+    manifest_stamp,
+    read_entry,
+    read_manifest_and_stamp,
+    rebuild_hint,
+)
 from catalign.limits import max_memory_maps, raise_open_files_limit
 
 logger = logging.getLogger(__name__)
 
 # Files a serving process opens besides its library's entries.
 _SPARE_FILES = 512
-_LOAD_ATTEMPTS = 5  # a writer may replace the manifest while a reader reads the entries
+_LOAD_ATTEMPTS = 5  # a writer may commit and delete files while a reader reads the entries
 
 
 class Library:
@@ -118,18 +125,17 @@ class Library:
 def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
     """Load and verify a library for an extractor (``None`` skips the fingerprint check).
 
-    Raises LibraryError if there is no library, LibraryCorruptError for a bad manifest, an
-    unknown format version or an entry that fails its checks, LibraryMismatchError if it was
-    built with another extractor.
+    Raises LibraryError if there is no library (or one of an older format, naming the command
+    that converts it), LibraryCorruptError for a bad catalogue, an unknown format version or an
+    entry that fails its checks, LibraryMismatchError if it was built with another extractor.
     """
     library_dir = Path(library_dir)
     for _ in range(_LOAD_ATTEMPTS):
-        raw = read_manifest_bytes(library_dir)
-        manifest = Manifest.from_bytes(raw, library_dir)
+        manifest, stamp = read_manifest_and_stamp(library_dir)
         if extractor_fingerprint is not None:
             check_fingerprint(manifest, extractor_fingerprint, library_dir)
         _check_process_limits(len(manifest.entries), library_dir)
-        entries = _read_entries(library_dir, manifest, raw)
+        entries = _read_entries(library_dir, manifest, stamp)
         if entries is not None:
             _check_descriptors(library_dir, entries)
             logger.info("loaded library %s: %d models", library_dir, len(entries))
@@ -166,12 +172,12 @@ def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -
         )
 
 
-def _read_entries(library_dir: Path, manifest: Manifest, raw: bytes) -> list[LibraryEntry] | None:
-    """Every entry of ``manifest``; None if a file vanished because a writer replaced it.
+def _read_entries(library_dir: Path, manifest: Manifest, stamp: Stamp) -> list[LibraryEntry] | None:
+    """Every entry of ``manifest``; None if a file vanished because a writer committed since.
 
-    A missing file is corruption only while the manifest that names it is still current and the
-    file is still missing: a writer that removed the entry and added it back within the same
-    second wrote a manifest with the very same bytes, and the file exists again.
+    A missing file is corruption only while the state that names it is still current (its
+    stamp) and the file is still missing: a writer that removed the entry and added it back
+    meanwhile wrote the very same record, and the file exists again.
     """
     entries = []
     for model_id in manifest.ids:
@@ -179,20 +185,13 @@ def _read_entries(library_dir: Path, manifest: Manifest, raw: bytes) -> list[Lib
         try:
             entries.append(read_entry(library_dir, model_id, record))
         except FileNotFoundError:
-            if _manifest_changed(library_dir, raw) or (library_dir / record.file).is_file():
+            if manifest_stamp(library_dir) != stamp or (library_dir / record.file).is_file():
                 return None
             raise LibraryCorruptError(
                 f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
                 f"remove the entry or {rebuild_hint(library_dir)}"
             ) from None
     return entries
-
-
-def _manifest_changed(library_dir: Path, raw: bytes) -> bool:
-    try:
-        return read_manifest_bytes(library_dir) != raw
-    except LibraryError:
-        return True
 
 
 def _check_descriptors(library_dir: Path, entries: Sequence[LibraryEntry]) -> None:
