@@ -11,13 +11,18 @@ model (top-1), those whose own model was shortlisted, the views right (within 10
 the nearest symmetric pose, and 5 cm), and the median and 95th-percentile seconds per query.
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
-    .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--views 2] [--seed 0]
-        [--model-dir DIR] [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
+    .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
+        [--views 2] [--seed 0] [--model-dir DIR] [--cache /tmp/catalign-retrieval]
+        [--out bench/results/retrieval.md]
+
+``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
+those distractor counts.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import tempfile
 import time
 from pathlib import Path
@@ -31,7 +36,8 @@ from catalign.data.procedural import generate_chair
 from catalign.data.shapes import Shape, SharedChairs, SharedTables
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases, frames_of, symmetries_of
-from catalign.features.extractor import LearnedExtractor
+from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.features.retrieval import RETRIEVAL_DIR
 from catalign.geometry.ncc import NCCFrame
 from catalign.library.index import build
 from catalign.library.loaded import load
@@ -61,7 +67,7 @@ def write_sources(folder: Path, shared: dict[str, dict[str, Shape]], distractors
 
 def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distractors: int) -> Path:
     """The library of the shared shapes and ``distractors`` procedural chairs (built once)."""
-    out = cache / extractor.fingerprint[:24] / f"distractors-{distractors}"
+    out = cache / extractor.fingerprint.replace("+", "_") / f"distractors-{distractors}"
     if not has_manifest(out):
         with tempfile.TemporaryDirectory(dir=cache) as folder:
             write_sources(Path(folder), shared, distractors)
@@ -71,12 +77,28 @@ def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distract
     return out
 
 
+def pooled_extractor(model_dir: Path | None, cache: Path) -> LearnedExtractor:
+    """The same weights without their retrieval encoders (a folder of links to every file but
+    ``retrieval/``): the shortlist then pools the features, as before the encoders."""
+    source = model_dir or DEFAULT_MODEL_DIR
+    folder = cache / "pooled-weights"
+    folder.mkdir(exist_ok=True)
+    for item in source.iterdir():
+        link = folder / item.name
+        if item.name not in (RETRIEVAL_DIR, "library") and not link.exists():
+            link.symlink_to(item.resolve())
+    return LearnedExtractor(folder)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--distractors", type=int, nargs="+", default=[0, 1000, 10000])
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--model-dir", type=Path, default=None)
+    parser.add_argument(
+        "--pooled", type=int, nargs="*", default=None, help="distractor counts of the baseline"
+    )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -92,10 +114,15 @@ def main() -> None:
     frames, symmetries = frames_of(every), symmetries_of(every)
     cases = {c: build_cases(observed[c], args.views, args.seed) for c in sources}
 
+    kinds = [("retrieval encoders", extractor)]
+    if args.pooled is not None:
+        kinds.append(("pooled features", pooled_extractor(args.model_dir, args.cache)))
     rows = []
-    for distractors in args.distractors:
-        library = load(library_for(args.cache, extractor, shared, distractors), None)
-        engine = Engine(extractor, library)
+    for distractors, (kind, described_by) in itertools.product(args.distractors, kinds):
+        if kind == "pooled features" and distractors not in args.pooled:
+            continue
+        library = load(library_for(args.cache, described_by, shared, distractors), None)
+        engine = Engine(described_by, library)
         for category, items in cases.items():
             own, listed, right, seconds = [], [], [], []
             for case in tqdm(items, desc=f"{len(library)} models, {category}"):
@@ -112,27 +139,27 @@ def main() -> None:
             in_category = sum(
                 1 for r in library.manifest.entries.values() if r.category == category
             )
-            rows.append(
-                (len(library), in_category, category, len(items), own, listed, right, seconds)
-            )
+            rows.append((kind, len(library), in_category, category, own, listed, right, seconds))
 
     lines = [
         "# Retrieval at scale",
         "",
         f"Every shared chair and table plus N procedural chairs; {args.views} view(s) of each "
         f"validation shape, seed {args.seed}, `up` given, category sent; weights "
-        f"`{args.model_dir or 'model_store'}` (fingerprint `{extractor.fingerprint[:24]}`), "
+        f"`{args.model_dir or 'model_store'}`, shortlisted by its retrieval encoders and, as the "
+        "baseline in the same run, by the mean and max of its features; "
         f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
         "own model answered; shortlisted: its own model among the candidates registered; right: "
         "within 10 degrees (nearest symmetric pose) and 5 cm.",
         "",
-        "| models | of the category | observed | views | top-1 % | shortlisted % | right % | "
-        "median s | p95 s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| shortlist | models | of the category | observed | views | top-1 % | shortlisted % | "
+        "right % | median s | p95 s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for size, in_category, category, count, own, listed, right, seconds in rows:
+    for kind, size, in_category, category, own, listed, right, seconds in rows:
         lines.append(
-            f"| {size} | {in_category} | {category} | {count} | {100 * np.mean(own):.1f} | "
+            f"| {kind} | {size} | {in_category} | {category} | {len(own)} | "
+            f"{100 * np.mean(own):.1f} | "
             f"{100 * np.mean(listed):.1f} | {100 * np.mean(right):.1f} | "
             f"{np.median(seconds):.3f} | {np.percentile(seconds, 95):.3f} |"
         )
