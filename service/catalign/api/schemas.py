@@ -338,7 +338,7 @@ class LibraryInfo(BaseModel):
     updated: str
     engine: dict[str, JsonData] = Field(
         default_factory=dict,
-        description="Engine options the library's manifest sets (`catalign library configure`); "
+        description="Engine options the library's catalogue sets (`catalign library configure`); "
         "CATALIGN_ENGINE__<FIELD> variables and `catalign serve --engine` override them.",
     )
 

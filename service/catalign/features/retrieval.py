@@ -111,12 +111,13 @@ class RetrievalHead:
     """The trained encoders with their card: a model's descriptor at build time, a view's at
     query time. ``penalty_weight`` is how much of the shortlist's size and height penalties
     (:mod:`catalign.library.retrieval`) is taken off a cosine of these descriptors, as chosen
-    when the head was trained."""
+    when the head was trained. ``fingerprint`` is its weights' sha256 (empty for encoders
+    still in training, not yet exported)."""
 
     def __init__(self, model: RetrievalModel, card: dict[str, Any]) -> None:
         self.model = model.eval()
         self.card = card
-        self.fingerprint = str(card["sha256"])
+        self.fingerprint = str(card.get("sha256", ""))
         self.penalty_weight = float(card.get("penalty_weight", 1.0))
 
     def model_descriptor(self, keypoints: np.ndarray, features: np.ndarray) -> np.ndarray:

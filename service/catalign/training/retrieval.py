@@ -171,9 +171,11 @@ def run(
     network = train_encoders(config, models, views, progress)
 
     held = [s.metric(i) for s in sources for i in s.ids("val")]
-    held += [procedural_shape(HELD_OUT_PROCEDURAL_SEED + n) for n in range(len(held))]
-    held_views = describe_views(
-        held[: len(held) // 2], HELD_OUT_VIEWS, extractor, HELD_OUT_SEED, 0.0, progress
+    unseen = [procedural_shape(HELD_OUT_PROCEDURAL_SEED + n) for n in range(len(held))]
+    held_views = describe_views(held, HELD_OUT_VIEWS, extractor, HELD_OUT_SEED, 0.0, progress)
+    trained = RetrievalHead(network, {"penalty_weight": config.penalty_weight})
+    recall = held_out_recall(
+        trained, describe_models(held + unseen, extractor, progress), held_views
     )
     card: dict[str, Any] = {
         "kind": "retrieval",
@@ -186,15 +188,12 @@ def run(
             "procedural_chairs": config.procedural,
             "views": len(views.clouds),
         },
+        "held_out": {
+            "views": f"{HELD_OUT_VIEWS} of each of {len(held)} validation shapes, seed "
+            f"{HELD_OUT_SEED}, at their true heading",
+            "library": f"those shapes and {len(unseen)} unseen procedural chairs",
+            **recall,
+        },
         "minutes": round((time.monotonic() - started) / 60, 1),
-    }
-    card = export_weights(config.out, network, card, WEIGHTS_FILE, CARD_FILE)
-    head = RetrievalHead(network, card)
-    recall = held_out_recall(head, describe_models(held, extractor, progress), held_views)
-    card["held_out"] = {
-        "views": f"{HELD_OUT_VIEWS} of each of {len(held) // 2} validation shapes, seed "
-        f"{HELD_OUT_SEED}, at their true heading",
-        "library": f"those shapes and {len(held) - len(held) // 2} unseen procedural chairs",
-        **recall,
     }
     return export_weights(config.out, network, card, WEIGHTS_FILE, CARD_FILE)

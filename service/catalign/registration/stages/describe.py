@@ -13,7 +13,7 @@ so every later stage works in the observation frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -40,10 +40,18 @@ def rotations_of(orientation: Orientation) -> list[np.ndarray]:
 
 @dataclass(frozen=True, eq=False)
 class QueryView:
-    """The query described at one heading; key points are in the observation frame."""
+    """The query described at one heading; key points are in the observation frame, and
+    ``rotation`` (observation -> the canonical frame at that heading) is the one the features
+    were computed after."""
 
     keypoints: np.ndarray
     features: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    @property
+    def canonical_keypoints(self) -> np.ndarray:
+        """The key points as the features saw them: turned into the canonical frame."""
+        return self.keypoints @ self.rotation.T
 
 
 def describe(
@@ -64,5 +72,5 @@ def describe(
         turned = [points @ r.T for r in rotations[first : first + per_pass]]
         described += extractor.describe_many(turned)
     return [
-        QueryView(d.keypoints @ r, d.features) for d, r in zip(described, rotations, strict=True)
+        QueryView(d.keypoints @ r, d.features, r) for d, r in zip(described, rotations, strict=True)
     ]

@@ -16,7 +16,7 @@ import numpy as np
 
 from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
-from catalign.registration.stages.describe import QueryView, rotations_of
+from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.stages.match import Matcher
 from catalign.registration.stages.request import Request
@@ -50,13 +50,7 @@ class Searcher:
         turn, seed, clock = search.turn, request.seed, request.clock
         with clock("shortlist"):
             candidates = shortlist(
-                self.library,
-                search.views,
-                request.k,
-                turn,
-                request.rows,
-                rotations=rotations_of(search.orientation),
-                retrieval=self.retrieval,
+                self.library, search.views, request.k, turn, request.rows, self.retrieval
             )
 
         # Match: keep the headings the leading candidates agree with, match every candidate

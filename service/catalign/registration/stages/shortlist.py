@@ -26,24 +26,21 @@ def shortlist(
     k: int | None,
     turn: np.ndarray | None,
     rows: np.ndarray | None = None,
-    *,
-    rotations: list[np.ndarray] | None = None,
     retrieval: RetrievalHead | None = None,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
     every model). ``views`` are the query at each heading; ``turn`` is the levelling turn when
-    ``up`` is known (its second row is ``up`` in the observation frame), else None. With
-    ``retrieval`` encoders, ``rotations`` are those the views were described after
-    (observation -> the canonical frame at each heading)."""
+    ``up`` is known (its second row is ``up`` in the observation frame), else None;
+    ``retrieval`` the encoders that describe the views (None: their pooled features)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
-    if retrieval is None or rotations is None:
+    if retrieval is None:
         descriptors = np.stack([global_descriptor(v.features) for v in views])
         weight = 1.0
     else:
-        turned = [(v.keypoints @ r.T, v.features) for v, r in zip(views, rotations, strict=True)]
+        turned = [(v.canonical_keypoints, v.features) for v in views]
         descriptors, weight = retrieval.view_descriptors(turned), retrieval.penalty_weight
     scores = retrieval_scores(library, descriptors, size, height, weight).max(axis=0)
     candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
