@@ -269,10 +269,13 @@ def serve(
 
 
 def _check_serve_paths(model_dir: Path, library: Path, engine: EngineConfig) -> None:
-    """Fail in one sentence before start-up when the weights or the library are missing, or
-    when the library's engine options are not valid ones."""
+    """Fail in one sentence before start-up when the weights or the library are missing, when
+    the library was built with other weights (or other retrieval encoders), or when its engine
+    options are not valid ones."""
+    from catalign.features.extractor import fingerprint_in
     from catalign.features.weights import CARD_FILE, WEIGHTS_FILE
     from catalign.library.index import info
+    from catalign.library.loaded import check_fingerprint
     from catalign.registration.config import served_config
 
     if not (model_dir / WEIGHTS_FILE).is_file() or not (model_dir / CARD_FILE).is_file():
@@ -280,8 +283,10 @@ def _check_serve_paths(model_dir: Path, library: Path, engine: EngineConfig) -> 
             f"no trained weights in {model_dir} (expected {WEIGHTS_FILE} and {CARD_FILE}); "
             "pass --model-dir or train one with `catalign train`"
         )
+    catalogue = info(library)
+    check_fingerprint(catalogue, fingerprint_in(model_dir), library)
     try:
-        served_config(engine, info(library).engine)
+        served_config(engine, catalogue.engine)
     except ConfigError as error:
         raise ConfigError(
             f"the library {library} sets {error}; set its options again with "

@@ -100,6 +100,20 @@ def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
     assert "Traceback" not in typo.output
 
 
+def test_serve_refuses_a_library_of_other_weights_in_one_sentence(tmp_path: Path) -> None:
+    # the shipped weights without their retrieval encoders: the shipped library's descriptors
+    # are the encoders', so it is refused before start-up, with the command that rebuilds it
+    for name in ("model.safetensors", "model_card.json"):
+        (tmp_path / name).symlink_to(DEFAULT_MODEL_DIR / name)
+    library = DEFAULT_MODEL_DIR / "library"
+    result = CliRunner().invoke(
+        app, ["serve", "--model-dir", str(tmp_path), "--library", str(library)]
+    )
+    assert result.exit_code == 2, result.output
+    assert "built with feature extractor" in result.output
+    assert "catalign library build" in result.output and "Traceback" not in result.output
+
+
 def test_serve_engine_flags_go_over_the_variables_field_by_field(
     serve_process: Callable[..., AbstractContextManager[ServerProcess]], library_dir: Path
 ) -> None:

@@ -9,6 +9,7 @@ descriptors would not be comparable.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,9 +74,8 @@ class LearnedExtractor:
         self.model, self.card = load_model(model_dir or DEFAULT_MODEL_DIR)
         self.voxel_size = float(self.card["voxel_size"])
         self.retrieval = find_retrieval(model_dir or DEFAULT_MODEL_DIR)
-        self.fingerprint = str(self.card["sha256"])
-        if self.retrieval is not None:
-            self.fingerprint += f"+retrieval-{self.retrieval.fingerprint[:16]}"
+        retrieval = None if self.retrieval is None else self.retrieval.fingerprint
+        self.fingerprint = learned_fingerprint(str(self.card["sha256"]), retrieval)
         rotation = self.card.get("training", {}).get("rotation", "upright")
         self.headings = YAW_BINS.get(rotation, 1)
         self.orientation = find_orientation(model_dir or DEFAULT_MODEL_DIR)
@@ -94,6 +94,27 @@ class LearnedExtractor:
         with torch.inference_mode():
             described = extract_features_batch(self.model, clouds, self.voxel_size)
         return [Described(c.numpy().astype(np.float64), f.numpy()) for c, f in described]
+
+
+def learned_fingerprint(weights_sha256: str, retrieval_sha256: str | None) -> str:
+    """A learned extractor's fingerprint: its weights' sha256, then its retrieval encoders'
+    (their descriptors are stored in the library too)."""
+    if retrieval_sha256 is None:
+        return weights_sha256
+    return f"{weights_sha256}+retrieval-{retrieval_sha256[:16]}"
+
+
+def fingerprint_in(model_dir: Path) -> str:
+    """The fingerprint of the weights in ``model_dir`` from their cards alone (nothing loaded),
+    for a check before a server starts; the cards' checksums are checked when it loads them."""
+    from catalign.features.retrieval import CARD_FILE as RETRIEVAL_CARD
+    from catalign.features.retrieval import RETRIEVAL_DIR
+    from catalign.features.weights import CARD_FILE
+
+    card = json.loads((model_dir / CARD_FILE).read_text())
+    retrieval = model_dir / RETRIEVAL_DIR / RETRIEVAL_CARD
+    encoders = json.loads(retrieval.read_text())["sha256"] if retrieval.is_file() else None
+    return learned_fingerprint(str(card["sha256"]), encoders)
 
 
 # The classic recipe's voxel (Open3D's global registration example at chair scale); the learned
