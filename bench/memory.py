@@ -1,22 +1,21 @@
-"""Memory of ``catalign serve`` with worker processes: is the library shared between them?
+"""Memory, start-up and latency of ``catalign serve`` with worker processes, by library size.
 
-Every worker process loads the library (and the server process too, for listings and uploads).
-Entry files are read as views of a read-only memory map (``catalign.library.npz``), so the
-processes read one copy of the library's pages from the page cache instead of holding one copy
-each; arrays of files written before their members were aligned are copied instead.
+Every worker process loads the library's catalogue (each model's record and shortlisting
+descriptor) and reads an entry's file only when a query shortlists it, keeping the last 128
+(``catalign.library.loaded``), so what a process holds grows with the catalogue and its
+caches, not with the entries' arrays.
 
 For each ``--library`` (default: latency.py's cached procedural library of ``--size`` models,
-built when missing), this starts ``catalign serve`` with ``--workers`` worker processes, sends
-``--queries`` different queries (views of procedural chairs outside the library, ``up`` given)
-through the SDK, two at a time so every worker runs, and reads ``/proc/PID/smaps`` of the server
-and of each worker: resident memory (RSS), its proportional share (PSS: a page shared by n
-processes counts 1/n in each), and the part of both in maps of the library's entry files. RSS
-counts a shared page in every process that reads it (what private copies would cost), PSS once
-over all. The per-model caches the engine builds for the models a query touches (KD-trees,
-normals, matching subsets) are private to each worker and grow with the models queried, up to
-the engine's ``model_cache`` models: ``--caches`` also measures, in a spawned process per
-setting, how much resident memory one engine gains when every model of the library is asked
-for once, with the default bound and without one (``model_cache=none``).
+built when missing), this starts ``catalign serve`` with ``--workers`` worker processes and
+times it to ready, sends ``--queries`` different queries (views of procedural chairs outside
+the library, ``up`` given) through the SDK one at a time after one to warm up, and reads
+``/proc/PID/smaps`` of the server and of each worker: resident memory (RSS) and its
+proportional share (PSS: a page shared by n processes counts 1/n in each). The per-model caches
+the engine builds for the models a query touches (KD-trees, normals, matching subsets) are
+private to each worker and grow with the models queried, up to the engine's ``model_cache``
+models: ``--caches`` also measures, in a spawned process per setting, how much resident memory
+one engine gains when every model of the library is asked for once, with the default bound and
+without one (``model_cache=none``).
 
     .venv/bin/python bench/memory.py [--library DIR ...] [--size 1000] [--workers 2]
         [--queries 16] [--caches] [--cache .cache/bench-libraries] [--out bench/results/memory.md]
@@ -27,10 +26,11 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import platform
-from concurrent.futures import ThreadPoolExecutor
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import psutil
 from _report import load_average, publish
 from serve import MODEL_DIR, REQUEST_TIMEOUT_S, UP, ServerProcess, query_cloud
@@ -48,59 +48,52 @@ MIB = 2**20
 
 @dataclass(frozen=True)
 class Usage:
-    """One process's memory, in bytes: all of it and the part in maps of library files."""
+    """One process's memory, in bytes."""
 
     rss: int
     pss: int
-    library_rss: int
-    library_pss: int
 
 
-def usage(pid: int, entries: Path) -> Usage:
-    """Sum the ``Rss`` and ``Pss`` lines of ``/proc/PID/smaps``, in all and over the maps of
-    files under ``entries``."""
-    totals = {"rss": 0, "pss": 0, "library_rss": 0, "library_pss": 0}
-    in_library = False
-    prefix = str(entries.resolve()) + "/"
+@dataclass(frozen=True)
+class Served:
+    """One library served: its size, the server's start-up, the queries' latencies and each
+    process's memory after them."""
+
+    library: Path
+    models: int
+    disk: int
+    median_entry: float
+    ready_s: float
+    latencies_s: list[float]
+    processes: list[tuple[str, Usage]]
+
+
+def usage(pid: int) -> Usage:
+    """Sum the ``Rss`` and ``Pss`` lines of ``/proc/PID/smaps``."""
+    totals = {"rss": 0, "pss": 0}
     for line in Path(f"/proc/{pid}/smaps").read_text().splitlines():
         field, _, rest = line.partition(" ")
-        if not field.endswith(":"):  # a map's header: address, perms, offset, dev, inode, path
-            in_library = line.split(maxsplit=5)[-1].startswith(prefix)
-        elif field in ("Rss:", "Pss:"):
-            size = int(rest.split()[0]) * 1024
-            key = field[:-1].lower()
-            totals[key] += size
-            if in_library:
-                totals[f"library_{key}"] += size
+        if field in ("Rss:", "Pss:"):
+            totals[field[:-1].lower()] += int(rest.split()[0]) * 1024
     return Usage(**totals)
 
 
-def viewed_share(library_dir: Path, fingerprint: str) -> tuple[float, int]:
-    """The share of the library's array bytes that a load views in place (not copied), and the
-    entry files' size on disk."""
-    library = load(library_dir, fingerprint)
-    viewed = total = 0
-    for entry in library:
-        for array in (entry.points, entry.keypoints, entry.features, entry.grid.values):
-            total += array.nbytes
-            viewed += 0 if array.flags.owndata else array.nbytes
-    disk = sum(p.stat().st_size for p in (library_dir / "entries").iterdir())
-    return viewed / total, disk
-
-
-def measure(library_dir: Path, workers: int, queries: int) -> list[tuple[str, Usage]]:
-    """Serve ``library_dir``, send the queries, return each process's usage."""
+def measure(library_dir: Path, workers: int, queries: int) -> Served:
+    """Serve ``library_dir``, time it to ready, send the queries, read each process's memory."""
+    sizes = [p.stat().st_size for p in (library_dir / "entries").iterdir()]
     server = ServerProcess(
         workers, queue=4 * workers, mode="processes", threads_per_worker=1, library=library_dir
     )
     try:
-        server.wait_ready()
-        clouds = [query_cloud(seed=5000 + i) for i in range(queries)]
-        with (
-            Client(server.url, timeout=REQUEST_TIMEOUT_S, retries=0) as client,
-            ThreadPoolExecutor(max_workers=workers) as pool,
-        ):
-            list(pool.map(lambda c: client.align(c, up=UP), clouds))
+        ready_s = server.wait_ready()
+        clouds = [query_cloud(seed=5000 + i) for i in range(queries + 1)]
+        latencies = []
+        with Client(server.url, timeout=REQUEST_TIMEOUT_S, retries=0) as client:
+            client.align(clouds[0], up=UP)  # every worker warmed up at start; this one's caches
+            for cloud in clouds[1:]:
+                started = time.perf_counter()
+                client.align(cloud, up=UP)
+                latencies.append(time.perf_counter() - started)
         main = psutil.Process(server.pid)
         # the worker processes, not multiprocessing's resource tracker
         children = [
@@ -108,12 +101,12 @@ def measure(library_dir: Path, workers: int, queries: int) -> list[tuple[str, Us
             for c in main.children(recursive=True)
             if "resource_tracker" not in " ".join(c.cmdline())
         ]
-        entries = library_dir / "entries"
-        rows = [("server", usage(main.pid, entries))]
-        rows += [(f"worker {i + 1}", usage(c.pid, entries)) for i, c in enumerate(children)]
-        return rows
+        rows = [("server", usage(main.pid))]
+        rows += [(f"worker {i + 1}", usage(c.pid)) for i, c in enumerate(children)]
     finally:
         server.stop()
+    return Served(library_dir, len(sizes), sum(sizes), float(np.median(sizes)), ready_s,
+                  latencies, rows)  # fmt: skip
 
 
 def cache_growth(library_dir: Path, model_cache: int | None) -> tuple[int, int]:
@@ -152,31 +145,32 @@ def cache_table(library_dir: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table(
-    results: list[tuple[Path, float, int, list[tuple[str, Usage]]]], args: argparse.Namespace
-) -> str:
+def table(results: list[Served], args: argparse.Namespace) -> str:
     lines = [
-        f"# catalign serve memory: {args.workers} worker processes, {args.queries} queries",
+        f"# catalign serve by library size: {args.workers} worker processes, {args.queries} "
+        "queries",
         "",
-        f"{platform.machine()}, load average {load_average():.1f}. RSS counts a shared page in "
-        "every process, PSS divides it among them; *library* is the part in maps of the "
-        "library's entry files. Command: `python bench/memory.py "
-        + " ".join(f"--library {p}" for p, *_ in results)
+        f"{platform.machine()}, load average {load_average():.1f}. Latency through the SDK, one "
+        "query at a time, `up` given; RSS counts a shared page in every process, PSS divides it "
+        "among them. Command: `python bench/memory.py "
+        + " ".join(f"--library {r.library}" for r in results)
         + f" --workers {args.workers} --queries {args.queries}"
         + (" --caches" if args.caches else "")
         + "`.",
         "",
-        "| library | arrays viewed in place | entry files | process | RSS MiB | PSS MiB "
-        "| library RSS MiB | library PSS MiB |",
-        "|---|---|---|---|---|---|---|---|",
+        "| library | models | entry files | median entry | ready s | median latency s "
+        "| p95 latency s | process | RSS MiB | PSS MiB |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for path, share, disk, rows in results:
-        total = Usage(*(sum(getattr(u, f) for _, u in rows) for f in Usage.__dataclass_fields__))
-        for name, u in [*rows, ("**all**", total)]:
-            lines.append(
-                f"| {path.name} | {share:.0%} | {disk / MIB:.0f} MiB | {name} | {u.rss / MIB:.0f} "
-                f"| {u.pss / MIB:.0f} | {u.library_rss / MIB:.0f} | {u.library_pss / MIB:.0f} |"
-            )
+    for served in results:
+        total = Usage(*(sum(getattr(u, f) for _, u in served.processes) for f in ("rss", "pss")))
+        head = (
+            f"| {served.library.name} | {served.models:,} | {served.disk / 2**30:.2f} GiB "
+            f"| {served.median_entry / 1024:.0f} KiB | {served.ready_s:.1f} "
+            f"| {np.median(served.latencies_s):.3f} | {np.percentile(served.latencies_s, 95):.3f}"
+        )
+        for name, u in [*served.processes, ("**all**", total)]:
+            lines.append(f"{head} | {name} | {u.rss / MIB:.0f} | {u.pss / MIB:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -199,10 +193,7 @@ def main() -> None:
                 folder, LearnedExtractor(MODEL_DIR), args.size, first_seed=0, overwrite=True
             )
         libraries = [folder]
-    results = []
-    for library_dir in libraries:
-        share, disk = viewed_share(library_dir, fingerprint)
-        results.append((library_dir, share, disk, measure(library_dir, args.workers, args.queries)))
+    results = [measure(library_dir, args.workers, args.queries) for library_dir in libraries]
     text = table(results, args)
     if args.caches:
         text += cache_table(libraries[-1])

@@ -4,7 +4,12 @@ Each library holds every shared chair and table (the validation ones are observe
 ones are distractors of their category) and ``N`` procedural chairs (seeds from
 :data:`FIRST_SEED`, far from those the retrieval encoders were trained on), built through
 ``catalign.library.index.build`` with every core, once per weights and ``N``, into ``--cache``.
-Every entry is a real build; none is a copy. The queries are views of the validation chairs and
+Every entry is a real build, except with ``--copies TOTAL``: then each library is also grown to
+``TOTAL`` entries by copies of its procedural distractors under new ids (``<id>-copy<k>``,
+their arrays unchanged), as many entries as cannot be built on two cores in an hour. A copy
+adds no shape the library did not hold, so those rows measure serving at that size (memory,
+latency, the shortlist's scan), not how retrieval copes with that many different shapes. The
+queries are views of the validation chairs and
 tables with ``up`` given and their category sent, registered by the engine in this process.
 Per library and observed category it reports the views answered with the observed shape's own
 model (top-1), those whose own model was shortlisted, the views right (within 10 degrees, to
@@ -12,8 +17,8 @@ the nearest symmetric pose, and 5 cm), and the median and 95th-percentile second
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
     .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
-        [--views 2] [--seed 0] [--model-dir DIR] [--cache /tmp/catalign-retrieval]
-        [--out bench/results/retrieval.md]
+        [--copies 100000] [--views 2] [--seed 0] [--model-dir DIR]
+        [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
 
 ``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
 those distractor counts.
@@ -22,9 +27,13 @@ those distractor counts.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import itertools
+import shutil
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +50,13 @@ from catalign.features.retrieval import RETRIEVAL_DIR
 from catalign.geometry.ncc import NCCFrame
 from catalign.library.index import build
 from catalign.library.loaded import load
-from catalign.library.store import has_manifest
+from catalign.library.store import (
+    commit_changes,
+    has_manifest,
+    read_entry,
+    read_manifest,
+    write_entry,
+)
 from catalign.registration.engine import Engine
 from catalign.threads import limit_threads
 from catalign.training.calibration import right_pose
@@ -77,6 +92,44 @@ def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distract
     return out
 
 
+def with_copies(library_dir: Path, total: int, workers: int) -> Path:
+    """``library_dir`` grown to ``total`` entries by copies of its procedural distractors under
+    new ids, in a folder beside it (made once, renamed into place when whole)."""
+    out = library_dir.with_name(f"{library_dir.name}-copies-{total}")
+    if has_manifest(out):
+        return out
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(library_dir, partial, ignore=shutil.ignore_patterns(".lock", ".writing"))
+    ids = read_manifest(partial).ids
+    sources = [i for i in ids if i.startswith("proc-")]
+    copies = [
+        (sources[n % len(sources)], f"{sources[n % len(sources)]}-copy{n // len(sources)}")
+        for n in range(total - len(ids))
+    ]
+    started = time.perf_counter()
+    with ProcessPoolExecutor(workers) as pool:
+        made = pool.map(functools.partial(_copy_entry, partial), copies, chunksize=64)
+        records = dict(tqdm(made, total=len(copies), desc=f"copies for {out.name}"))
+    commit_changes(partial, put=records)
+    partial.rename(out)
+    print(f"copied {len(copies)} entries into {out} in {time.perf_counter() - started:.0f} s")
+    return out
+
+
+def _copy_entry(library_dir: Path, names: tuple[str, str]) -> tuple[str, object]:
+    """One entry written again under another id; its record."""
+    source, target = names
+    record = _records(library_dir)[source]
+    entry = read_entry(library_dir, source, record)
+    return target, write_entry(library_dir, dataclasses.replace(entry, model_id=target))
+
+
+@functools.cache
+def _records(library_dir: Path) -> dict:
+    return read_manifest(library_dir).entries
+
+
 def pooled_extractor(model_dir: Path | None, cache: Path) -> LearnedExtractor:
     """The same weights without their retrieval encoders (a folder of links to every file but
     ``retrieval/``): the shortlist then pools the features, as before the encoders."""
@@ -90,6 +143,35 @@ def pooled_extractor(model_dir: Path | None, cache: Path) -> LearnedExtractor:
     return LearnedExtractor(folder)
 
 
+def measure(
+    kind: str,
+    folder: Path,
+    extractor: LearnedExtractor,
+    cases: dict,
+    frames: dict,
+    symmetries: dict,
+    seed: int,
+) -> list[tuple]:
+    """Every case registered against the library in ``folder``; a row per category."""
+    library = load(folder, None)
+    engine = Engine(extractor, library)
+    rows = []
+    for category, items in cases.items():
+        own, listed, right, seconds = [], [], [], []
+        for case in tqdm(items, desc=f"{len(library)} models, {category}"):
+            started = time.perf_counter()
+            result = engine.register(case.points, up=WORLD_UP, seed=seed, category=category)
+            seconds.append(time.perf_counter() - started)
+            if result.model_id not in frames:  # a distractor: its frame from its entry
+                frames[result.model_id] = NCCFrame.fit(library[result.model_id].points)
+            own.append(result.model_id == case.shape_id)
+            listed.append(case.shape_id in {c.model_id for c in result.candidates})
+            right.append(right_pose(result.pose, result.model_id, case, frames, symmetries))
+        in_category = int(np.sum(library.categories == category))
+        rows.append((kind, len(library), in_category, category, own, listed, right, seconds))
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--distractors", type=int, nargs="+", default=[0, 1000, 10000])
@@ -98,6 +180,9 @@ def main() -> None:
     parser.add_argument("--model-dir", type=Path, default=None)
     parser.add_argument(
         "--pooled", type=int, nargs="*", default=None, help="distractor counts of the baseline"
+    )
+    parser.add_argument(
+        "--copies", type=int, default=None, help="also grow each library to this many entries"
     )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
     parser.add_argument("--threads", type=int, default=2)
@@ -121,26 +206,13 @@ def main() -> None:
     for distractors, (kind, described_by) in itertools.product(args.distractors, kinds):
         if kind == "pooled features" and distractors not in args.pooled:
             continue
-        library = load(library_for(args.cache, described_by, shared, distractors), None)
-        engine = Engine(described_by, library)
-        for category, items in cases.items():
-            own, listed, right, seconds = [], [], [], []
-            for case in tqdm(items, desc=f"{len(library)} models, {category}"):
-                started = time.perf_counter()
-                result = engine.register(
-                    case.points, up=WORLD_UP, seed=args.seed, category=category
-                )
-                seconds.append(time.perf_counter() - started)
-                if result.model_id not in frames:  # a distractor: its frame from its entry
-                    frames[result.model_id] = NCCFrame.fit(library[result.model_id].points)
-                own.append(result.model_id == case.shape_id)
-                listed.append(case.shape_id in {c.model_id for c in result.candidates})
-                right.append(right_pose(result.pose, result.model_id, case, frames, symmetries))
-            in_category = sum(
-                1 for r in library.manifest.entries.values() if r.category == category
-            )
-            rows.append((kind, len(library), in_category, category, own, listed, right, seconds))
-
+        built = library_for(args.cache, described_by, shared, distractors)
+        folders = [(kind, built)]
+        if args.copies is not None and kind == "retrieval encoders":
+            grown = with_copies(built, args.copies, args.threads)
+            folders.append((f"{kind}, copies", grown))
+        for label, folder in folders:
+            rows += measure(label, folder, described_by, cases, frames, symmetries, args.seed)
     lines = [
         "# Retrieval at scale",
         "",

@@ -42,6 +42,13 @@ class LibraryCorruptError(LibraryError):
     """The index on disk fails its format or checksum checks."""
 
 
+class LibraryChangedError(LibraryError):
+    """An entry the served library names was replaced or removed on disk while a request ran:
+    the request is worth retrying on the library as it is now (at once: ``retry_after``)."""
+
+    retry_after = 0
+
+
 class LibraryMismatchError(LibraryError):
     """The index was built with other feature-extractor weights."""
 

@@ -990,8 +990,8 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     """The base writer's seed-library script, run as its init container runs it (the volume
     and the image's folder replaced by folders here): an empty volume gets the image's library,
     entries first and the catalogue last; a second start changes nothing; a library of format 2
-    (manifest.json, seeded by an older image) is converted in place, its entry files kept."""
-    from tests.library.conftest import as_format_2
+    or 3 (seeded by an older image) is converted in place, to the entries the image holds."""
+    from tests.library.conftest import as_format_2, as_format_3
 
     writer = find("dev", "Deployment", WRITER)
     (seed,) = [c for c in writer["spec"]["template"]["spec"]["initContainers"]]
@@ -1023,7 +1023,10 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     assert (volume / "catalogue.sqlite").read_bytes() == written
     entries = {p.name: p.read_bytes() for p in (volume / "entries").iterdir()}
     as_format_2(volume)
-    assert "converted to format 3" in run()
+    assert "converted from format 2 to format 4" in run()
     assert not (volume / "manifest.json").exists()
     assert read_manifest(volume).entries == shipped.entries
     assert {p.name: p.read_bytes() for p in (volume / "entries").iterdir()} == entries
+    as_format_3(volume)
+    assert "converted from format 3 to format 4" in run()
+    assert read_manifest(volume).entries == shipped.entries

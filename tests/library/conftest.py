@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import io
 import json
 import sqlite3
 from contextlib import closing
@@ -14,6 +17,8 @@ import trimesh
 
 from catalign.features.extractor import Described
 from catalign.geometry.sampling import voxel_downsample
+from catalign.library.loaded import load
+from catalign.library.records import EntryRecord, entry_file_name
 from catalign.library.store import read_manifest
 
 
@@ -113,20 +118,73 @@ def stored(library_dir: Path, query: str) -> list[tuple[Any, ...]]:
 
 def as_format_2(library_dir: Path) -> dict[str, Any]:
     """Turn a library back into format 2 (its catalogue as the ``manifest.json`` catalign
-    wrote before format 3, which users still have) and return that JSON."""
+    wrote before format 3, which users still have, its entries in the full layout) and return
+    that JSON."""
     manifest = read_manifest(library_dir)
+    records = _full_entry_files(library_dir)
     raw = {
         "format_version": 2,
         "extractor": {"fingerprint": manifest.fingerprint, "voxel_size": manifest.voxel_size},
         "created": manifest.created,
         "updated": manifest.updated,
-        "entries": {i: manifest.entries[i].to_json() for i in manifest.ids},
+        "entries": {i: _without_descriptor(records[i].to_json()) for i in manifest.ids},
         "engine": manifest.engine,
         "category": manifest.category,
     }
     (library_dir / "catalogue.sqlite").unlink()
     write_format_2(library_dir, raw)
     return raw
+
+
+def as_format_3(library_dir: Path) -> None:
+    """Turn a library back into format 3: its entries in the full layout, its catalogue
+    without the descriptor column, as catalign wrote before format 4."""
+    records = _full_entry_files(library_dir)
+    with closing(sqlite3.connect(library_dir / "catalogue.sqlite")) as connection, connection:
+        connection.execute("ALTER TABLE entries DROP COLUMN descriptor")
+        connection.execute("UPDATE library SET format_version = 3")
+        connection.executemany(
+            "UPDATE entries SET file = ?, sha256 = ? WHERE model_id = ?",
+            [(r.file, r.sha256, i) for i, r in records.items()],
+        )
+
+
+def _without_descriptor(record: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in record.items() if k != "descriptor"}
+
+
+def _full_entry_files(library_dir: Path) -> dict[str, EntryRecord]:
+    """Rewrite every entry file in the layout of formats 2 and 3 (every array at full
+    precision, uncompressed) holding the same values; the records that name the new files."""
+    manifest, library = read_manifest(library_dir), load(library_dir, None)
+    records = {}
+    for model_id, record in manifest.entries.items():
+        entry = library[model_id]
+        buffer = io.BytesIO()
+        np.savez(
+            buffer,
+            model_id=np.array(model_id),
+            points=entry.points,
+            keypoints=entry.keypoints,
+            features=entry.features,
+            descriptor=entry.descriptor,
+            bbox_min=entry.bbox_min,
+            bbox_max=entry.bbox_max,
+            size=entry.size,
+            grid=entry.grid.values,
+            grid_origin=entry.grid.origin,
+            grid_cell_step=np.array([entry.grid.cell, entry.grid.step]),
+            source=np.array(entry.source),
+            source_sha256=np.array(entry.source_sha256),
+            units=np.array(entry.units),
+        )
+        data = buffer.getvalue()
+        sha256 = hashlib.sha256(data).hexdigest()
+        file = entry_file_name(model_id, sha256)
+        (library_dir / record.file).unlink()
+        (library_dir / file).write_bytes(data)
+        records[model_id] = dataclasses.replace(record, file=file, sha256=sha256, descriptor=b"")
+    return records
 
 
 def write_format_2(library_dir: Path, raw: dict[str, Any]) -> None:

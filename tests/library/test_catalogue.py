@@ -34,7 +34,7 @@ from catalign.library.index import configure
 from catalign.library.legacy import migrate
 from catalign.library.records import EntryRecord, Manifest, entry_file_name
 from catalign.library.store import commit, commit_changes, manifest_stamp, read_manifest
-from tests.library.conftest import as_format_2, stored, write_format_2
+from tests.library.conftest import as_format_2, as_format_3, stored, write_format_2
 
 
 @pytest.fixture
@@ -305,6 +305,18 @@ def test_a_library_of_format_2_is_refused_until_converted(library, files, extrac
     assert not (library / "manifest.json").exists()
     assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
     assert migrate(library).entries == records  # again: nothing left to do
+    assert load(library, extractor.fingerprint).ids == ["a", "b"]
+
+
+def test_a_library_of_format_3_is_converted_to_small_entries(library, extractor) -> None:
+    records, entries = info(library).entries, everything(library / "entries")
+    as_format_3(library)  # full entries, no descriptors in the catalogue
+    full = sum(len(data) for data in everything(library / "entries").values())
+    with pytest.raises(LibraryError, match=r"format 3.*catalign library migrate"):
+        load(library, extractor.fingerprint)
+    assert migrate(library).entries == records  # the same records, descriptors included
+    assert everything(library / "entries") == entries  # the same bytes as a fresh build
+    assert sum(len(data) for data in entries.values()) < full * 0.7
     assert load(library, extractor.fingerprint).ids == ["a", "b"]
 
 

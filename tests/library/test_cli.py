@@ -111,11 +111,12 @@ def test_a_library_of_the_older_format_is_refused_until_migrated(tmp_path: Path)
         assert "holds a library of an older format (manifest.json)" in said
         assert f"catalign library migrate {library}" in said and "Traceback" not in said
     migrated = runner.invoke(app, ["library", "migrate", str(library)])
-    assert migrated.exit_code == 0 and "converted to format 3, 2 models" in migrated.output
+    assert migrated.exit_code == 0
+    assert "converted from format 2 to format 4, 2 models" in migrated.output
     assert not (library / "manifest.json").exists()
     assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
     again = runner.invoke(app, ["library", "migrate", str(library)])
-    assert again.exit_code == 0 and "already of format 3" in again.output
+    assert again.exit_code == 0 and "already of format 4" in again.output
     info = runner.invoke(app, ["library", "info", str(library)])
     assert info.exit_code == 0 and "engine options: (the defaults)" in info.output
     assert "models: 2" in info.output

@@ -18,9 +18,15 @@ import catalign.library.catalogue as catalogue
 import catalign.library.index as index
 import catalign.library.loaded as loaded
 import catalign.library.store as store
-from catalign.errors import LibraryCorruptError, LibraryError, LibraryMismatchError
+from catalign.errors import (
+    LibraryChangedError,
+    LibraryCorruptError,
+    LibraryError,
+    LibraryMismatchError,
+)
 from catalign.library import add, build, info, load, remove
 from catalign.library.entry import describe_file
+from catalign.library.npz import npz_arrays
 from catalign.library.sources import SourceFile
 
 
@@ -43,26 +49,37 @@ def unreferenced(library_dir) -> set[str]:
     return leftovers - referenced
 
 
-def test_entry_files_are_byte_reproducible(files, extractor):
+def test_entry_files_are_byte_reproducible_and_read_back_equal(files, extractor):
     entry = describe_file(SourceFile("a", files.cloud("a.npy", 1)), extractor)
     assert store.entry_bytes(entry) == store.entry_bytes(entry)
     with np.load(io.BytesIO(store.entry_bytes(entry)), allow_pickle=False) as npz:
         assert str(npz["model_id"]) == "a"
-        np.testing.assert_array_equal(npz["features"], entry.features)
+        assert npz["point_steps"].dtype == np.uint16 and npz["feature_steps"].dtype == np.int8
+    back = store.entry_from_arrays(npz_arrays(store.entry_bytes(entry)))
+    for name in ("points", "keypoints", "features", "descriptor", "bbox_min", "size"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(entry, name), err_msg=name)
+    np.testing.assert_array_equal(back.grid.values, entry.grid.values)
 
 
-def test_loaded_entries_view_their_files_so_processes_share_them(small_library, extractor):
+def test_an_entry_is_read_when_first_asked_for_and_then_kept(small_library, extractor):
     library = load(small_library, extractor.fingerprint)
-    for entry in library:
-        for array in (entry.points, entry.keypoints, entry.features, entry.grid.values):
-            assert not array.flags.owndata  # a view of the file's map: no private copy
-            assert not array.flags.writeable
-    # the map outlives a newer library deleting the file (entries are never changed in place)
     entry = library["a"]
-    expected = entry.features.copy()
-    for path in (small_library / "entries").iterdir():
-        path.unlink()
-    np.testing.assert_array_equal(entry.features, expected)
+    for array in (entry.points, entry.keypoints, entry.features, entry.grid.values):
+        assert not array.flags.writeable
+    (small_library / info(small_library).entries["a"].file).unlink()
+    assert library["a"] is entry  # kept: no second read
+    with pytest.raises(LibraryCorruptError, match=r"entry 'b'.*fails its checksum"):
+        path = small_library / info(small_library).entries["b"].file
+        path.write_bytes(path.read_bytes()[::-1])
+        library["b"]
+
+
+def test_an_entry_a_writer_removed_after_the_load_is_a_change_to_retry(small_library, extractor):
+    library = load(small_library, extractor.fingerprint)
+    remove(small_library, ["b"])
+    with pytest.raises(LibraryChangedError, match=r"entry 'b' was replaced or removed.*retry"):
+        library["b"]
+    assert load(small_library, extractor.fingerprint).ids == ["a"]
 
 
 def test_crash_before_the_catalogue_commits_keeps_the_old_library(
@@ -182,8 +199,9 @@ def test_flipped_bytes_name_the_entry(small_library, extractor):
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     path.write_bytes(bytes(data))
+    library = load(small_library, extractor.fingerprint)  # files are checked when read
     with pytest.raises(LibraryCorruptError, match=r"entry 'b'.*fails its checksum"):
-        load(small_library, extractor.fingerprint)
+        library.verify()
 
 
 def test_a_missing_entry_file_is_named(small_library, extractor):
@@ -192,29 +210,29 @@ def test_a_missing_entry_file_is_named(small_library, extractor):
         load(small_library, extractor.fingerprint)
 
 
-def _write_while_reading(monkeypatch, model_id, before_read, after_read=lambda: None):
-    """Make a writer run ``before_read`` just before a reader reads ``model_id``'s file (the
-    reader holds the manifest it read first) and ``after_read`` right after that read."""
-    real_read = loaded.read_entry
+def _write_while_reading(monkeypatch, before_read, after_read=lambda: None):
+    """Make a writer run ``before_read`` just before a reader lists the entry files (the
+    reader holds the catalogue it read first) and ``after_read`` right after that listing."""
+    real_names = loaded._entry_names
 
-    def racing_read(library_dir, wanted, record):
-        if wanted != model_id or racing_read.done:
-            return real_read(library_dir, wanted, record)
-        racing_read.done = True
+    def racing_names(folder):
+        if racing_names.done:
+            return real_names(folder)
+        racing_names.done = True
         before_read()
         try:
-            return real_read(library_dir, wanted, record)
+            return real_names(folder)
         finally:
             after_read()
 
-    racing_read.done = False
-    monkeypatch.setattr(loaded, "read_entry", racing_read)
+    racing_names.done = False
+    monkeypatch.setattr(loaded, "_entry_names", racing_names)
 
 
 def test_a_reader_loads_the_new_manifest_when_a_writer_deleted_an_entry_under_it(
     small_library, extractor, monkeypatch
 ):
-    _write_while_reading(monkeypatch, "b", lambda: remove(small_library, ["b"]))
+    _write_while_reading(monkeypatch, lambda: remove(small_library, ["b"]))
     assert load(small_library, extractor.fingerprint).ids == ["a"]
 
 
@@ -225,7 +243,6 @@ def test_an_entry_removed_and_added_back_within_a_second_is_not_corruption(
     monkeypatch.setattr(index, "utc_now", lambda: info(small_library).updated)  # same second
     _write_while_reading(
         monkeypatch,
-        "b",
         lambda: remove(small_library, ["b"]),
         lambda: add(small_library, [files.root / "b.npy"], extractor, progress=False),
     )
@@ -249,12 +266,19 @@ def _edit_catalogue(library_dir, statement: str, *parameters) -> None:
     connection.close()
 
 
-@pytest.mark.parametrize("version", [99, 2, 1])
+@pytest.mark.parametrize("version", [99, 1])
 def test_unknown_format_version(small_library, extractor, version):
     """Any other version is refused, with the command that rebuilds it."""
     _edit_catalogue(small_library, "UPDATE library SET format_version = ?", version)
-    expected = rf"format version {version}.*reads version 3.*library build .* --overwrite"
+    expected = rf"format version {version}.*reads version 4.*library build .* --overwrite"
     with pytest.raises(LibraryCorruptError, match=expected):
+        load(small_library, extractor.fingerprint)
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_format_that_converts_is_refused_with_the_command(small_library, extractor, version):
+    _edit_catalogue(small_library, "UPDATE library SET format_version = ?", version)
+    with pytest.raises(LibraryError, match=rf"format {version}.*catalign library migrate"):
         load(small_library, extractor.fingerprint)
 
 
@@ -283,7 +307,7 @@ def test_an_entry_without_a_grid_is_corrupt(small_library, extractor):
     np.savez(buffer, **arrays)
     _replace_entry(small_library, "a", buffer.getvalue())
     with pytest.raises(LibraryCorruptError, match=r"'a'.*malformed.*grid"):
-        load(small_library, extractor.fingerprint)
+        load(small_library, extractor.fingerprint)["a"]
 
 
 def _replace_entry(library_dir, model_id: str, data: bytes) -> None:
@@ -314,7 +338,11 @@ def _replace_entry(library_dir, model_id: str, data: bytes) -> None:
         ("UPDATE library SET fingerprint = x'07'", "unexpected bytes"),
         ("UPDATE library SET engine = '[1, 2]'", "unexpected list"),
         ("DROP TABLE entries", "no such table"),
+        ("UPDATE entries SET descriptor = 'x' WHERE model_id = 'a'", "descriptor is str"),
+        ("UPDATE entries SET descriptor = x'00' WHERE model_id = 'a'", "not float32 bytes"),
+        ("UPDATE entries SET descriptor = x'' WHERE model_id = 'a'", "different lengths"),
         ("UPDATE entries SET num_points = 7 WHERE model_id = 'a'", "point counts"),
+        ("UPDATE entries SET descriptor = zeroblob(16) WHERE model_id = 'b'", "descriptor"),
     ],
 )
 def test_tampered_catalogue(small_library, extractor, statement, problem):
@@ -324,7 +352,7 @@ def test_tampered_catalogue(small_library, extractor, statement, problem):
         assert problem in str(refused)
         return
     with pytest.raises(LibraryCorruptError, match=problem):
-        load(small_library, extractor.fingerprint)
+        load(small_library, extractor.fingerprint).verify()  # the files are checked when read
 
 
 def test_other_extractor_weights(small_library, files, extractor):

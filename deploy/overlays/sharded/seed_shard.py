@@ -3,8 +3,8 @@ belong to the shard, nothing else.
 
 A shard named for a category gets that category's entries, and entries added to it without a
 category become that category; the shard ``default`` gets every entry whose category has no
-shard of its own. A volume that already holds a library is left alone (one of the older
-format, ``manifest.json``, is converted in place). Entries are written first (temporary name,
+shard of its own. A volume that already holds a library is left alone (one of an older format
+is converted in place). Entries are written first (temporary name,
 fsync, rename), the catalogue last, by the library's own commit.
 
 Environment: ``SHARD`` (this shard's name, from the pod's ``catalign/shard`` label), ``SHARDS``
@@ -22,7 +22,6 @@ from pathlib import Path
 from catalign.atomic import atomic_write_bytes
 from catalign.library.legacy import migrate
 from catalign.library.store import (
-    CATALOGUE_NAME,
     begin_write,
     commit,
     has_manifest,
@@ -45,9 +44,7 @@ def main() -> int:
         )
         return 2
     if has_manifest(target):
-        if not (target / CATALOGUE_NAME).is_file():
-            migrate(target)
-            print(f"converted the library in {target} to the current format")
+        migrate(target)  # one of an older format converted; one of this format left as it is
         print(f"library present in {target}; not seeding")
         return 0
     image = read_manifest(source)

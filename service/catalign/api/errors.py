@@ -5,7 +5,8 @@ The service adds a few errors of its own to catalign's hierarchy (:mod:`catalign
     CatalignError
     ├── InvalidInputError ─┬─ ModelExistsError       409 model_exists
     │                      └─ IdempotencyKeyReusedError  422 idempotency_key_reused
-    ├── LibraryError ──────── EmptyLibraryError      409 library_empty
+    ├── LibraryError ──────┬─ EmptyLibraryError      409 library_empty
+    │                      └─ LibraryChangedError    503 library_changed (with Retry-After)
     └── ServiceError
         ├── PayloadTooLargeError                     413 payload_too_large
         ├── UnsupportedMediaTypeError                415 unsupported_media_type
@@ -39,6 +40,7 @@ from catalign.errors import (
     DeadlineExceededError,
     DegenerateInputError,
     InvalidInputError,
+    LibraryChangedError,
     LibraryError,
     ModelNotFoundError,
     ShapeReadError,
@@ -111,6 +113,7 @@ ERROR_TABLE: tuple[tuple[type[Exception], ErrorKind], ...] = (
     (ShapeReadError, ErrorKind(422, "invalid_file", "INVALID_ARGUMENT")),
     (ModelNotFoundError, ErrorKind(404, "model_not_found", "NOT_FOUND")),
     (EmptyLibraryError, ErrorKind(409, "library_empty", "FAILED_PRECONDITION")),
+    (LibraryChangedError, ErrorKind(503, "library_changed", "UNAVAILABLE")),
     (LibraryError, ErrorKind(500, "library_error", "INTERNAL")),
     (ConfigError, ErrorKind(500, "config_error", "INTERNAL")),
     (PayloadTooLargeError, ErrorKind(413, "payload_too_large", "RESOURCE_EXHAUSTED")),

@@ -26,7 +26,7 @@ from catalign.api.inputs import decode_binary, parse_options
 from catalign.api.metrics import Metrics
 from catalign.api.middleware import valid_request_id
 from catalign.api.paging import DEFAULT_PAGE, MAX_PAGE, page
-from catalign.api.schemas import RegisterResponse
+from catalign.api.schemas import ModelPublic, RegisterResponse
 from catalign.api.service import RegistrationService
 from catalign.api.settings import ServiceSettings
 from catalign.errors import ConfigError, InvalidInputError
@@ -84,31 +84,16 @@ class CatalignServicer(catalign_pb2_grpc.CatalignServicer):
                 raise InvalidInputError(
                     f"page_size {request.page_size} is outside 0 to {MAX_PAGE} (0: {DEFAULT_PAGE})"
                 )
-            kept = [e for e in await self.service.models() if category in (None, e.category)]
-            entries, next_token = page(
-                [e.model_id for e in kept],
-                kept,
-                request.page_size or DEFAULT_PAGE,
-                request.page_token or None,
+            library = await self.service.current_library()
+            ids = library.ids
+            if category is not None:
+                ids = [i for i, c in zip(ids, library.categories, strict=True) if c == category]
+            shown, next_token = page(
+                ids, ids, request.page_size or DEFAULT_PAGE, request.page_token or None
             )
-            models = [
-                catalign_pb2.Model(
-                    model_id=e.model_id,
-                    category=e.category,
-                    symmetry=catalign_pb2.Symmetry(
-                        order=e.symmetry.order, yaws_deg=e.symmetry.yaws_deg
-                    ),
-                    source=e.source,
-                    units=e.units,
-                    num_points=e.num_points,
-                    bbox_min=e.bbox_min.tolist(),
-                    bbox_max=e.bbox_max.tolist(),
-                    size=e.size.tolist(),
-                )
-                for e in entries
-            ]
+            models = [_model(ModelPublic.of(library, model_id)) for model_id in shown]
             return catalign_pb2.ListModelsReply(
-                count=len(models), models=models, next_page_token=next_token or "", total=len(kept)
+                count=len(models), models=models, next_page_token=next_token or "", total=len(ids)
             )
 
         return await self._call("ListModels", context, run)
@@ -197,6 +182,22 @@ def register_reply(answer: RegisterResponse) -> catalign_pb2.RegisterReply:
         ],
         timings_ms=answer.timings_ms,
         request_id=answer.request_id,
+    )
+
+
+def _model(model: ModelPublic) -> catalign_pb2.Model:
+    """A model as ``ListModels`` answers it: the fields ``GET /models`` shows."""
+    symmetry = model.symmetry
+    return catalign_pb2.Model(
+        model_id=model.model_id,
+        category=model.category,
+        symmetry=catalign_pb2.Symmetry(order=symmetry.order, yaws_deg=symmetry.yaws_deg),
+        source=model.source,
+        units=model.units,
+        num_points=model.num_points,
+        bbox_min=model.bbox_min,
+        bbox_max=model.bbox_max,
+        size=model.size,
     )
 
 

@@ -22,6 +22,8 @@ from catalign.registration.config import EngineConfig
 if TYPE_CHECKING:
     from catalign.geometry.symmetry import YawSymmetry
     from catalign.library.entry import LibraryEntry
+    from catalign.library.loaded import Library
+    from catalign.library.records import EntryRecord
     from catalign.registration.results import Alternative, RegistrationResult
 
 MAX_SEED = 2**31 - 1
@@ -292,16 +294,28 @@ class ModelPublic(BaseModel):
 
     @classmethod
     def from_entry(cls, entry: LibraryEntry) -> ModelPublic:
+        return cls.from_record(entry.model_id, entry, entry.symmetry)
+
+    @classmethod
+    def of(cls, library: Library, model_id: str) -> ModelPublic:
+        """What a loaded library's catalogue says of one of its models (no file read)."""
+        return cls.from_record(model_id, library.record(model_id), library.symmetry(model_id))
+
+    @classmethod
+    def from_record(
+        cls, model_id: str, record: EntryRecord | LibraryEntry, symmetry: YawSymmetry
+    ) -> ModelPublic:
+        """What the catalogue says of a model (no entry file read)."""
         return cls(
-            model_id=entry.model_id,
-            category=entry.category,
-            symmetry=SymmetryPublic.from_symmetry(entry.symmetry),
-            source=entry.source,
-            units=entry.units,
-            num_points=entry.num_points,
-            bbox_min=[float(v) for v in entry.bbox_min],
-            bbox_max=[float(v) for v in entry.bbox_max],
-            size=[float(v) for v in entry.size],
+            model_id=model_id,
+            category=record.category,
+            symmetry=SymmetryPublic.from_symmetry(symmetry),
+            source=record.source,
+            units=record.units,
+            num_points=record.num_points,
+            bbox_min=[float(v) for v in record.bbox_min],
+            bbox_max=[float(v) for v in record.bbox_max],
+            size=[float(v) for v in record.size],
         )
 
 

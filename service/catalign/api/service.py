@@ -177,13 +177,13 @@ class RegistrationService:
         return result
 
     async def model(self, model_id: str) -> LibraryEntry:
-        await self.refresh()
-        return self.library[model_id]
+        """One model's entry, read from its file (its points, its features...)."""
+        return await asyncio.to_thread((await self.current_library()).__getitem__, model_id)
 
-    async def models(self) -> list[LibraryEntry]:
+    async def current_library(self) -> Library:
+        """The library as it is on disk now (loaded again if another process changed it)."""
         await self.refresh()
-        library = self.library
-        return [library[i] for i in library.ids]
+        return self.library
 
     async def refresh(self, slot: Slot | None = None) -> None:
         """Load the library again when another process changed it since it was loaded (on a

@@ -34,7 +34,13 @@ from catalign.library.catalogue_db import (
     set_pragmas,
     writing,
 )
-from catalign.library.records import FORMAT_VERSION, EntryRecord, Manifest, rebuild_hint
+from catalign.library.records import (
+    FORMAT_VERSION,
+    MIGRATABLE_VERSIONS,
+    EntryRecord,
+    Manifest,
+    rebuild_hint,
+)
 from catalign.library.sources import CATEGORY_PATTERN
 
 APPLICATION_ID = 0x63617461  # "cata" in the header: tells a catalogue from other SQLite files
@@ -45,7 +51,7 @@ _LIBRARY_COLUMNS = ("fingerprint", "voxel_size", "created", "updated", "category
 _ENTRY_COLUMNS = (
     "model_id", "file", "sha256", "source", "source_sha256", "units", "num_points",
     "num_keypoints", "bbox_min_x", "bbox_min_y", "bbox_min_z", "bbox_max_x", "bbox_max_y",
-    "bbox_max_z", "size_x", "size_y", "size_z", "category", "symmetry",
+    "bbox_max_z", "size_x", "size_y", "size_z", "category", "symmetry", "descriptor",
 )  # fmt: skip
 _SCHEMA = f"""
 CREATE TABLE library (
@@ -71,7 +77,8 @@ CREATE TABLE entries (
     num_keypoints INTEGER NOT NULL,
     {", ".join(f"{c} REAL NOT NULL" for c in _ENTRY_COLUMNS[8:17])},
     category TEXT NOT NULL,
-    symmetry INTEGER
+    symmetry INTEGER,
+    descriptor BLOB NOT NULL
 );
 """
 _SELECT_ENTRIES = f"SELECT {', '.join(_ENTRY_COLUMNS)} FROM entries"
@@ -252,8 +259,13 @@ def _header(connection: sqlite3.Connection, library_dir: Path) -> tuple[Any, ...
             f"{path} is an SQLite database but not a catalign catalogue; "
             f"{rebuild_hint(library_dir)}"
         )
-    row = connection.execute("SELECT format_version FROM library").fetchone()
-    version = None if row is None else row[0]
+    version = format_version(connection)
+    if version in MIGRATABLE_VERSIONS:
+        raise LibraryError(
+            f"{path} holds a library of format {version}, which this catalign converts but no "
+            f"longer reads; convert it in place with `catalign library migrate {library_dir}` "
+            f"or {rebuild_hint(library_dir)}"
+        )
     if version != FORMAT_VERSION:
         raise LibraryCorruptError(
             f"{path} has library format version {version!r}, but this catalign reads "
@@ -276,12 +288,19 @@ def _header(connection: sqlite3.Connection, library_dir: Path) -> tuple[Any, ...
     return fingerprint, voxel_size, created, updated, category, engine, uid, generation
 
 
+def format_version(connection: sqlite3.Connection) -> Any:
+    """The library row's format version (None without one)."""
+    row = connection.execute("SELECT format_version FROM library").fetchone()
+    return None if row is None else row[0]
+
+
 def _records(rows: list[Any], library_dir: Path) -> Iterator[tuple[str, EntryRecord]]:
     """Each row as a checked record: SQLite keeps any type in any column, and a row edited by
     hand must not name a file outside the library."""
     for row in rows:
         try:
-            if tuple(map(type, row[:-1])) != _ROW_TYPES or type(row[-1]) not in _SYMMETRY_TYPES:
+            types = tuple(map(type, row))
+            if types[:-2] + types[-1:] != _ROW_TYPES or types[-2] not in _SYMMETRY_TYPES:
                 raise TypeError(_wrong_types(row))
             record = EntryRecord(*row[1:8], row[8:11], row[11:14], row[14:17], *row[17:])
             record.check(row[0])
@@ -290,13 +309,14 @@ def _records(rows: list[Any], library_dir: Path) -> Iterator[tuple[str, EntryRec
         yield row[0], record
 
 
-_ROW_TYPES = (str, str, str, str, str, str, int, int, *(float,) * 9, str)
+_ROW_TYPES = (str, str, str, str, str, str, int, int, *(float,) * 9, str, bytes)
 _SYMMETRY_TYPES = (int, type(None))
 
 
 def _wrong_types(row: tuple[Any, ...]) -> str:
-    kinds = (*_ROW_TYPES, int)
-    bad = [(c, v) for c, v, k in zip(_ENTRY_COLUMNS, row, kinds, strict=True) if type(v) is not k]
+    kinds = [(kind,) for kind in _ROW_TYPES]
+    kinds.insert(-1, _SYMMETRY_TYPES)
+    bad = [(c, v) for c, v, k in zip(_ENTRY_COLUMNS, row, kinds, strict=True) if type(v) not in k]
     column, value = bad[0]
     return f"{column} is {type(value).__name__} {value!r}"
 
@@ -305,7 +325,7 @@ def _rows(entries: Mapping[str, EntryRecord]) -> list[tuple[Any, ...]]:
     return [
         (model_id, r.file, r.sha256, r.source, r.source_sha256, r.units, r.num_points,
          r.num_keypoints, *map(float, (*r.bbox_min, *r.bbox_max, *r.size)), r.category,
-         r.symmetry)
+         r.symmetry, r.descriptor)
         for model_id, r in entries.items()
     ]  # fmt: skip
 

@@ -198,22 +198,31 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
 
 @app.command()
 def migrate(
-    library: Annotated[Path, typer.Argument(help="Library folder of the older format.")],
+    library: Annotated[Path, typer.Argument(help="Library folder of an older format.")],
 ) -> None:
-    """Convert a library of the older format (manifest.json) in place: its entry files stay
-    as they are, its catalogue becomes catalogue.sqlite. Safe to interrupt and run again."""
-    from catalign.library.catalogue_db import LEGACY_MANIFEST_NAME
+    """Convert a library of an older format (2: manifest.json, 3: catalogue.sqlite with full
+    entries) in place: every entry rewritten small, no features computed again (no weights
+    needed), a new catalogue.sqlite. Safe to interrupt and run again."""
+    from tqdm import tqdm
+
+    from catalign.library.legacy import format_of
     from catalign.library.legacy import migrate as migrate_library
-    from catalign.library.store import CATALOGUE_NAME
+    from catalign.library.records import FORMAT_VERSION
 
     with exit_on_error():
-        converting = not (library / CATALOGUE_NAME).is_file()
-        manifest = migrate_library(library)
-    done = "converted to" if converting else "already of"
-    typer.echo(
-        f"{library}: {done} format {manifest.format_version}, {len(manifest.entries)} models"
-        + (f" ({LEGACY_MANIFEST_NAME} removed)" if converting else "")
-    )
+        before = format_of(library) if library.is_dir() else None
+        with tqdm(desc=f"converting {library.name}", unit="entry", disable=None) as bar:
+
+            def advance(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            manifest = migrate_library(library, advance)
+    if before == FORMAT_VERSION:
+        done = f"already of format {FORMAT_VERSION}"
+    else:
+        done = f"converted from format {before} to format {FORMAT_VERSION}"
+    typer.echo(f"{library}: {done}, {len(manifest.entries)} models")
 
 
 def _symmetric(manifest: Any) -> str:

@@ -5,10 +5,13 @@ A mesh is sampled by area (:data:`SURFACE_POINTS` points, more for a model large
 seeded from the source's sha256, so the same file always gives the same entry. Coordinates are
 converted to metres (``source * unit_factor(units)``) before anything is stored, so a pose found
 against an entry maps *source coordinates converted to metres* into the observation. The
-extractor then gives key points and features,
-:func:`~catalign.library.retrieval.model_descriptor` the vector used for shortlisting, and
-:class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated distance field
-that verification reads instead of searching the points.
+points are narrowed to what their file keeps (:mod:`~catalign.library.quantise`) before
+anything is computed from them. The extractor then gives key points and features,
+:func:`~catalign.library.retrieval.model_descriptor` the vector used for shortlisting (from all
+of them), and :class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated
+distance field that verification reads instead of searching the points; the entry keeps the
+:data:`~catalign.library.quantise.STORED_KEYPOINTS` key points matching reads, their features
+narrowed to 8 bits.
 """
 
 from __future__ import annotations
@@ -25,6 +28,12 @@ from catalign.geometry.distance_grid import CELL_VOXELS, TRUNCATION_VOXELS, Dist
 from catalign.geometry.io import MeshData, ShapeData, read_shape
 from catalign.geometry.sampling import sample_surface, subsample, voxel_downsample
 from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry, find_yaw_symmetry
+from catalign.library.quantise import (
+    STORED_KEYPOINTS,
+    narrowed_features,
+    narrowed_points,
+    stored_rows,
+)
 from catalign.library.retrieval import model_descriptor
 from catalign.library.sources import DEFAULT_CATEGORY, SourceFile, unit_factor
 from catalign.limits import MIN_VOXELS
@@ -45,7 +54,8 @@ class LibraryEntry:
     """A described library model; all coordinates in metres, arrays read-only once loaded.
 
     ``points`` (N,3) float32 surface samples, ``keypoints`` (M,3) float64 and ``features`` (M,D)
-    float32 from the extractor, ``descriptor`` (K,) float32 for shortlisting, and the bounding
+    float32 from the extractor (at most :data:`~catalign.library.quantise.STORED_KEYPOINTS`),
+    ``descriptor`` (K,) float32 for shortlisting, and the bounding
     box of the whole source shape, ``grid`` the distance field of ``points`` over that box.
     ``source`` is the file path (or ``procedural:<seed>``), ``source_sha256`` its checksum,
     ``units`` the unit the source was declared in, ``category`` the kind of object it is and
@@ -144,6 +154,9 @@ def describe_shape(
     else:
         extent_points = shape.points * factor
         points = subsample(extent_points, surface_count(extent_points, num_points), rng)
+    bbox_min = extent_points.min(axis=0).astype(np.float64)
+    bbox_max = extent_points.max(axis=0).astype(np.float64)
+    points = narrowed_points(points, bbox_min, bbox_max)
     voxels = len(voxel_downsample(points, extractor.voxel_size)[0])
     if voxels < MIN_VOXELS:
         raise DegenerateInputError(
@@ -151,15 +164,14 @@ def describe_shape(
             f"{extractor.voxel_size:g} m, and a query needs at least {MIN_VOXELS}; a model must "
             "be at least as large as what it is matched with (is the declared unit right?)"
         )
-    described = extractor.describe(np.ascontiguousarray(points, dtype=np.float64))
+    described = extractor.describe(points.astype(np.float64))
     if len(described.keypoints) == 0:
         raise DegenerateInputError(
             f"{source}: the extractor found no key points in model {model_id!r} "
             f"({len(points)} points, voxel size {extractor.voxel_size:g} m); "
             "is the declared unit right?"
         )
-    bbox_min = extent_points.min(axis=0).astype(np.float64)
-    bbox_max = extent_points.max(axis=0).astype(np.float64)
+    kept = stored_rows(len(described.keypoints), STORED_KEYPOINTS)
     voxel = extractor.voxel_size
     grid = DistanceGrid.around(
         points,
@@ -170,9 +182,9 @@ def describe_shape(
     )
     return LibraryEntry(
         model_id=model_id,
-        points=np.ascontiguousarray(points, dtype=np.float32),
-        keypoints=np.ascontiguousarray(described.keypoints, dtype=np.float64),
-        features=np.ascontiguousarray(described.features, dtype=np.float32),
+        points=points,
+        keypoints=described.keypoints[kept].astype(np.float32).astype(np.float64),
+        features=narrowed_features(described.features[kept]),
         descriptor=model_descriptor(extractor, described.keypoints, described.features),
         bbox_min=bbox_min,
         bbox_max=bbox_max,

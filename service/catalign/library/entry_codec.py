@@ -1,5 +1,11 @@
 """One library entry as the arrays of its ``.npz`` file, and back: the file's layout, with every
-array's type and shape checked on the way in (a damaged file is refused, not half-read)."""
+array's type and shape checked on the way in (a damaged file is refused, not half-read).
+
+Points are stored as uint16 steps across the bounding box and features as int8 multiples of
+one step (:mod:`~catalign.library.quantise`); an entry made by
+:func:`~catalign.library.entry.describe_shape` already holds those values, so a written entry
+reads back equal.
+"""
 
 from __future__ import annotations
 
@@ -8,21 +14,30 @@ import numpy as np
 from catalign.geometry.distance_grid import DistanceGrid
 from catalign.library.entry import LibraryEntry
 from catalign.library.npz import npz_bytes
+from catalign.library.quantise import (
+    feature_step,
+    feature_steps,
+    features_from_steps,
+    point_steps,
+    points_from_steps,
+)
 
 _STRING_FIELDS = ("model_id", "source", "source_sha256", "units")
 
 
 def entry_bytes(entry: LibraryEntry) -> bytes:
-    """An entry as ``.npz`` bytes (uncompressed, byte-reproducible, each array aligned so that
-    readers can map it: :mod:`~catalign.library.npz`)."""
+    """An entry as deflated ``.npz`` bytes, byte-reproducible (:mod:`~catalign.library.npz`)."""
+    low, high = np.asarray(entry.bbox_min, np.float64), np.asarray(entry.bbox_max, np.float64)
+    step = feature_step(entry.features)
     arrays = {
         "model_id": np.array(entry.model_id),
-        "points": np.ascontiguousarray(entry.points, dtype=np.float32),
-        "keypoints": np.ascontiguousarray(entry.keypoints, dtype=np.float64),
-        "features": np.ascontiguousarray(entry.features, dtype=np.float32),
+        "point_steps": point_steps(entry.points, low, high),
+        "keypoints": np.ascontiguousarray(entry.keypoints, dtype=np.float32),
+        "feature_steps": feature_steps(entry.features, step),
+        "feature_step": np.array(step),
         "descriptor": np.ascontiguousarray(entry.descriptor, dtype=np.float32),
-        "bbox_min": np.asarray(entry.bbox_min, dtype=np.float64),
-        "bbox_max": np.asarray(entry.bbox_max, dtype=np.float64),
+        "bbox_min": low,
+        "bbox_max": high,
         "size": np.asarray(entry.size, dtype=np.float64),
         "grid": np.ascontiguousarray(entry.grid.values, dtype=np.uint8),
         "grid_origin": np.asarray(entry.grid.origin, dtype=np.float64),
@@ -37,13 +52,14 @@ def entry_bytes(entry: LibraryEntry) -> bytes:
 def entry_from_arrays(arrays: dict[str, np.ndarray]) -> LibraryEntry:
     """The entry an entry file's arrays hold, each checked for its type and shape."""
     strings = {name: _string(arrays[name], name) for name in _STRING_FIELDS}
-    points = _array(arrays["points"], "points", np.float32, 3)
-    keypoints = _array(arrays["keypoints"], "keypoints", np.float64, 3)
-    features = _array(arrays["features"], "features", np.float32, None)
+    steps = _array(arrays["point_steps"], "point_steps", np.uint16, 3)
+    keypoints = _array(arrays["keypoints"], "keypoints", np.float32, 3)
+    features = _array(arrays["feature_steps"], "feature_steps", np.int8, None)
+    step = _scalar(arrays["feature_step"], "feature_step")
     descriptor = _array(arrays["descriptor"], "descriptor", np.float32, None, ndim=1)
-    if len(points) == 0 or len(keypoints) == 0 or len(features) != len(keypoints):
+    if len(steps) == 0 or len(keypoints) == 0 or len(features) != len(keypoints):
         raise ValueError(
-            f"{len(points)} points, {len(keypoints)} key points and {len(features)} features"
+            f"{len(steps)} points, {len(keypoints)} key points and {len(features)} features"
         )
     boxes = {n: _array(arrays[n], n, np.float64, None, ndim=1) for n in ("bbox_min", "bbox_max")}
     size = _array(arrays["size"], "size", np.float64, None, ndim=1)
@@ -51,9 +67,9 @@ def entry_from_arrays(arrays: dict[str, np.ndarray]) -> LibraryEntry:
         raise ValueError("bbox_min, bbox_max and size must hold 3 values each")
     return LibraryEntry(
         grid=_grid(arrays),
-        points=points,
-        keypoints=keypoints,
-        features=features,
+        points=_read_only(points_from_steps(steps, boxes["bbox_min"], boxes["bbox_max"])),
+        keypoints=_read_only(keypoints.astype(np.float64)),
+        features=_read_only(features_from_steps(features, step)),
         descriptor=descriptor,
         size=size,
         **boxes,
@@ -75,7 +91,17 @@ def _array(
 ) -> np.ndarray:
     if value.dtype != dtype or value.ndim != ndim or (columns and value.shape[1] != columns):
         raise ValueError(f"{name} has dtype {value.dtype} and shape {value.shape}")
-    value = np.ascontiguousarray(value)
+    return _read_only(np.ascontiguousarray(value))
+
+
+def _scalar(value: np.ndarray, name: str) -> float:
+    """A positive, finite float64 stored as a 0-d array."""
+    if value.dtype != np.float64 or value.ndim != 0 or not 0 < float(value) < np.inf:
+        raise ValueError(f"{name} is {value!r}, not a positive number")
+    return float(value)
+
+
+def _read_only(value: np.ndarray) -> np.ndarray:
     value.flags.writeable = False
     return value
 

@@ -1,12 +1,19 @@
-"""A loaded library: :func:`load` checks the format version, the extractor fingerprint and every
-entry's checksum, and returns a :class:`Library` whose arrays view the entry files
-(memory-mapped, shared between processes), with the descriptors and sizes stacked for
-:func:`~catalign.library.retrieval.shortlist`. Writing is :mod:`catalign.library.index`'s.
+"""A loaded library: :func:`load` checks the format version, the extractor fingerprint, every
+record of the catalogue and that every entry file is there, and returns a :class:`Library` that
+stacks the descriptors and sizes the catalogue holds for
+:func:`~catalign.library.retrieval.shortlist`. An entry's file is read when the entry is first
+needed (its checksum and arrays checked then) and kept in a small cache: a request reads only
+the entries it shortlists, and a process holds no file open, so the library's size is bound
+by disk and by the catalogue in memory, not by how many files or maps a process may hold.
+Writing is :mod:`catalign.library.index`'s.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import threading
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -14,6 +21,7 @@ import numpy as np
 
 from catalign.errors import (
     InvalidInputError,
+    LibraryChangedError,
     LibraryCorruptError,
     LibraryError,
     LibraryMismatchError,
@@ -22,6 +30,8 @@ from catalign.errors import (
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
 from catalign.library.store import (
+    ENTRIES_DIR,
+    EntryRecord,
     Manifest,
     Stamp,
     manifest_stamp,
@@ -29,50 +39,69 @@ from catalign.library.store import (
     read_manifest_and_stamp,
     rebuild_hint,
 )
-from catalign.limits import max_memory_maps, raise_open_files_limit
 
 logger = logging.getLogger(__name__)
 
-# Files a serving process opens besides its library's entries.
-_SPARE_FILES = 512
-_LOAD_ATTEMPTS = 5  # a writer may commit and delete files while a reader reads the entries
+# Entries read from disk that a process keeps (about half a megabyte each, read back): more
+# than one request shortlists, fewer than a library of thousands holds.
+CACHED_ENTRIES = 128
+_LOAD_ATTEMPTS = 5  # a writer may commit and delete files while a reader checks the entries
 
 
 class Library:
-    """A loaded library: every entry in memory, plus stacked arrays for shortlisting.
+    """A loaded library: the catalogue's records and stacked arrays in memory, each entry read
+    from disk when it is first asked for.
 
     Example::
 
         library = load("model_store/library", extractor.fingerprint)
-        ids = shortlist(library, global_descriptor(query.features), np.ptp(points, axis=0), k=5)
-        model = library[ids[0]]  # LibraryEntry: points, keypoints, features, ...
+        rows = shortlist(library, views, k=5, ...)  # over library.unit_descriptors
+        model = library[library.ids[rows[0]]]  # LibraryEntry: points, keypoints, features, ...
 
     ``ids`` are sorted; ``descriptors`` (E,K) float32 (``unit_descriptors`` the same of unit
-    length), ``sizes`` (E,3) float64 and ``categories`` (E,) follow them.
+    length), ``sizes`` (E,3) float64 and ``categories`` (E,) follow them. ``entries``, when
+    given, are held in memory instead of read from ``path`` (a library made in a test).
     """
 
-    def __init__(self, path: Path, manifest: Manifest, entries: Sequence[LibraryEntry]) -> None:
+    def __init__(
+        self,
+        path: Path,
+        manifest: Manifest,
+        entries: Sequence[LibraryEntry] | None = None,
+        stamp: Stamp | None = None,
+    ) -> None:
         self.path = path
         self.manifest = manifest
         self.fingerprint = manifest.fingerprint
         self.voxel_size = manifest.voxel_size
-        ordered = sorted(entries, key=lambda e: e.model_id)
-        self.ids: list[str] = [e.model_id for e in ordered]
-        self._entries = {e.model_id: e for e in ordered}
-        width = ordered[0].descriptor.shape[0] if ordered else 0
-        self.descriptors = np.zeros((len(ordered), width), dtype=np.float32)
-        self.sizes = np.zeros((len(ordered), 3), dtype=np.float64)
-        self.categories = np.array([e.category for e in ordered], dtype=object)
-        held = {e.category for e in ordered}
-        self._only_category = held.pop() if len(held) == 1 else ""
-        for row, entry in enumerate(ordered):
-            self.descriptors[row] = entry.descriptor
-            self.sizes[row] = entry.size
+        self._stamp = stamp
+        self._held = {e.model_id: e for e in entries or ()}
+        if entries is None:
+            self.ids: list[str] = manifest.ids
+            records = [manifest.entries[i] for i in self.ids]
+            categories = [r.category for r in records]
+            sizes = [r.size for r in records]
+            vectors = [np.frombuffer(r.descriptor, dtype="<f4") for r in records]
+        else:
+            self.ids = sorted(self._held)
+            held = [self._held[i] for i in self.ids]
+            categories = [e.category for e in held]
+            sizes = [e.size for e in held]
+            vectors = [e.descriptor for e in held]
+        self._rows = {model_id: row for row, model_id in enumerate(self.ids)}
+        width = len(vectors[0]) if vectors else 0
+        self.descriptors = np.array(vectors, dtype=np.float32).reshape(len(self.ids), width)
+        self.sizes = np.array(sizes, dtype=np.float64).reshape(len(self.ids), 3)
+        self.categories = np.array(categories, dtype=object)
+        held_categories = set(categories)
+        self._only_category = held_categories.pop() if len(held_categories) == 1 else ""
         # Unit-length descriptors, so that a query's cosine with every entry is one product.
         norms = np.linalg.norm(self.descriptors, axis=1, keepdims=True)
         self.unit_descriptors = self.descriptors / np.maximum(norms, 1e-12)
         for array in (self.descriptors, self.sizes, self.unit_descriptors):
             array.flags.writeable = False
+        self._cache: OrderedDict[str, LibraryEntry] = OrderedDict()
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -100,67 +129,94 @@ class Library:
             )
         return rows
 
+    def record(self, model_id: str) -> EntryRecord:
+        """What the catalogue says of an entry (no file is read)."""
+        self._check_known(model_id)
+        return self.manifest.entries[model_id]
+
     def symmetry(self, model_id: str) -> YawSymmetry:
         """The turns about its up under which an entry looks the same."""
+        if model_id not in self._held:
+            order = self.record(model_id).symmetry
+            if order is not None:
+                return YawSymmetry(order)
         return self[model_id].symmetry
 
+    def in_memory(self) -> Library:
+        """This library with every entry read into memory, to serve after its folder is gone
+        (an evaluation's library, built in a temporary folder)."""
+        return Library(self.path, self.manifest, list(self), stamp=self._stamp)
+
+    def verify(self) -> None:
+        """Read and check every entry's file (what serving does lazily), so that a damaged
+        one is named now; raises LibraryCorruptError."""
+        for model_id in self.ids:
+            self._read(model_id)
+
     def __contains__(self, model_id: object) -> bool:
-        return model_id in self._entries
+        return model_id in self._rows
 
     def __getitem__(self, model_id: str) -> LibraryEntry:
-        try:
-            return self._entries[model_id]
-        except KeyError:
-            raise ModelNotFoundError(
-                f"no model {model_id!r} in the library ({len(self)} models)"
-            ) from None
+        self._check_known(model_id)
+        held = self._held.get(model_id)
+        if held is not None:
+            return held
+        with self._lock:
+            cached = self._cache.get(model_id)
+            if cached is not None:
+                self._cache.move_to_end(model_id)
+                return cached
+        entry = self._read(model_id)
+        with self._lock:
+            self._cache[model_id] = entry
+            while len(self._cache) > CACHED_ENTRIES:
+                self._cache.popitem(last=False)
+        return entry
 
     def __iter__(self) -> Iterator[LibraryEntry]:
-        return iter(self._entries.values())
+        return (self[model_id] for model_id in self.ids)
 
     def __repr__(self) -> str:
         return f"Library({str(self.path)!r}, {len(self)} models, extractor {self.fingerprint!r})"
 
+    def _check_known(self, model_id: str) -> None:
+        if model_id not in self._rows:
+            raise ModelNotFoundError(f"no model {model_id!r} in the library ({len(self)} models)")
+
+    def _read(self, model_id: str) -> LibraryEntry:
+        """An entry's file, read and checked. A file gone because a writer replaced or removed
+        the entry since this library was loaded is a LibraryChangedError (worth a retry on the
+        new state); gone while the catalogue still names it, corruption."""
+        record = self.manifest.entries[model_id]
+        try:
+            return read_entry(self.path, model_id, record)
+        except FileNotFoundError:
+            if manifest_stamp(self.path) != self._stamp:
+                raise LibraryChangedError(
+                    f"library entry {model_id!r} was replaced or removed on disk while this "
+                    "request ran; retry"
+                ) from None
+            raise _missing(self.path, model_id, record) from None
+
 
 def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
-    """Load and verify a library for an extractor (``None`` skips the fingerprint check).
+    """Load and check a library for an extractor (``None`` skips the fingerprint check); the
+    entries' files are checked as they are read (:meth:`Library.verify` reads them all).
 
     Raises LibraryError if there is no library (or one of an older format, naming the command
-    that converts it), LibraryCorruptError for a bad catalogue, an unknown format version or an
-    entry that fails its checks, LibraryMismatchError if it was built with another extractor.
+    that converts it), LibraryCorruptError for a bad catalogue, an unknown format version or a
+    missing entry file, LibraryMismatchError if it was built with another extractor.
     """
     library_dir = Path(library_dir)
     for _ in range(_LOAD_ATTEMPTS):
         manifest, stamp = read_manifest_and_stamp(library_dir)
         if extractor_fingerprint is not None:
             check_fingerprint(manifest, extractor_fingerprint, library_dir)
-        _check_process_limits(len(manifest.entries), library_dir)
-        entries = _read_entries(library_dir, manifest, stamp)
-        if entries is not None:
-            _check_descriptors(library_dir, entries)
-            logger.info("loaded library %s: %d models", library_dir, len(entries))
-            return Library(library_dir, manifest, entries)
+        if _files_present(library_dir, manifest, stamp):
+            _check_descriptors(library_dir, manifest)
+            logger.info("loaded library %s: %d models", library_dir, len(manifest.entries))
+            return Library(library_dir, manifest, stamp=stamp)
     raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
-
-
-def _check_process_limits(count: int, library_dir: Path) -> None:
-    """Every entry keeps its file open and mapped while it is served, twice over while a
-    changed library replaces the old: raise the open-files limit to match, or say plainly why
-    the library cannot be served by this process (instead of failing half-way through it)."""
-    wanted = 2 * count + _SPARE_FILES
-    allowed = raise_open_files_limit(wanted)
-    maps = max_memory_maps()
-    if allowed < wanted or (maps is not None and maps < wanted):
-        limit = (
-            f"may open {allowed} files (ulimit -n)"
-            if allowed < wanted
-            else f"may hold {maps} memory maps (vm.max_map_count)"
-        )
-        raise LibraryError(
-            f"the library at {library_dir} holds {count} models, each kept open and mapped "
-            f"while served (twice while a changed library replaces it): this process {limit}, "
-            f"and {wanted} are needed; raise that limit or split the library by category"
-        )
 
 
 def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
@@ -172,31 +228,40 @@ def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -
         )
 
 
-def _read_entries(library_dir: Path, manifest: Manifest, stamp: Stamp) -> list[LibraryEntry] | None:
-    """Every entry of ``manifest``; None if a file vanished because a writer committed since.
+def _files_present(library_dir: Path, manifest: Manifest, stamp: Stamp) -> bool:
+    """Whether every file ``manifest`` names is there (one listing of the entries folder);
+    False if one vanished because a writer committed since.
 
     A missing file is corruption only while the state that names it is still current (its
     stamp) and the file is still missing: a writer that removed the entry and added it back
     meanwhile wrote the very same record, and the file exists again.
     """
-    entries = []
+    present = _entry_names(library_dir / ENTRIES_DIR)
+    prefix = len(ENTRIES_DIR) + 1
     for model_id in manifest.ids:
         record = manifest.entries[model_id]
-        try:
-            entries.append(read_entry(library_dir, model_id, record))
-        except FileNotFoundError:
-            if manifest_stamp(library_dir) != stamp or (library_dir / record.file).is_file():
-                return None
-            raise LibraryCorruptError(
-                f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
-                f"remove the entry or {rebuild_hint(library_dir)}"
-            ) from None
-    return entries
+        if record.file[prefix:] in present:
+            continue
+        if manifest_stamp(library_dir) != stamp or (library_dir / record.file).is_file():
+            return False
+        raise _missing(library_dir, model_id, record)
+    return True
 
 
-def _check_descriptors(library_dir: Path, entries: Sequence[LibraryEntry]) -> None:
-    widths = {e.descriptor.shape[0] for e in entries}
-    if len(widths) > 1:
+def _entry_names(folder: Path) -> set[str]:
+    return set(os.listdir(folder)) if folder.is_dir() else set()
+
+
+def _missing(library_dir: Path, model_id: str, record: EntryRecord) -> LibraryCorruptError:
+    return LibraryCorruptError(
+        f"library entry {model_id!r}: its file {library_dir / record.file} is missing; "
+        f"remove the entry or {rebuild_hint(library_dir)}"
+    )
+
+
+def _check_descriptors(library_dir: Path, manifest: Manifest) -> None:
+    widths = {len(record.descriptor) // 4 for record in manifest.entries.values()}
+    if len(widths) > 1 or 0 in widths:
         raise LibraryCorruptError(
             f"the entries of {library_dir} have descriptors of different lengths "
             f"({sorted(widths)}); {rebuild_hint(library_dir)}"

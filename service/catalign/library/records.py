@@ -7,6 +7,8 @@ need them; the build journal keeps records as JSON lines (:meth:`EntryRecord.to_
 
 from __future__ import annotations
 
+import base64
+import binascii
 import re
 from collections import Counter
 from dataclasses import dataclass, field
@@ -15,7 +17,10 @@ from typing import Any
 
 from catalign.library.sources import CATEGORY_PATTERN, DEFAULT_CATEGORY
 
-FORMAT_VERSION = 3  # 2: entries hold their surface's distance grid; 3: an SQLite catalogue
+# 2: entries hold their surface's distance grid; 3: an SQLite catalogue; 4: small entries
+# (narrowed arrays, deflated) and each entry's descriptor in the catalogue
+FORMAT_VERSION = 4
+MIGRATABLE_VERSIONS = (2, 3)  # ``catalign library migrate`` converts these
 ENTRIES_DIR = "entries"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 
@@ -48,6 +53,9 @@ class EntryRecord:
     symmetry: int | None = None
     """The entry's :class:`~catalign.geometry.symmetry.YawSymmetry` order; None in a record
     written before entries had one (found again from the entry's points when it is read)."""
+    descriptor: bytes = b""
+    """The entry's shortlisting descriptor, float32 little-endian: a served library stacks
+    these from the catalogue without opening an entry file."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -63,6 +71,7 @@ class EntryRecord:
             "size": list(self.size),
             "category": self.category,
             "symmetry": self.symmetry,
+            "descriptor": base64.b64encode(self.descriptor).decode(),
         }
 
     @classmethod
@@ -85,6 +94,7 @@ class EntryRecord:
             size=vector(data["size"]),
             category=typed(data.get("category", default_category), str),
             symmetry=data.get("symmetry"),
+            descriptor=_decoded(data.get("descriptor", "")),
         )
         record.check(model_id)
         return record
@@ -97,6 +107,8 @@ class EntryRecord:
         symmetry = self.symmetry
         if symmetry is not None and (type(symmetry) is not int or symmetry < 0):
             raise ValueError(f"symmetry {symmetry!r} is not an order (0, 1, 2...)")
+        if type(self.descriptor) is not bytes or len(self.descriptor) % 4:
+            raise ValueError("descriptor is not float32 bytes")
         if not _SHA256.fullmatch(self.sha256):
             raise ValueError(f"sha256 {self.sha256!r} is not a hex sha256")
         if self.file != entry_file_name(model_id, self.sha256):
@@ -144,3 +156,10 @@ def vector(values: Any) -> tuple[float, float, float]:
     if len(items) != 3:
         raise ValueError(f"expected 3 numbers, got {len(items)}")
     return (items[0], items[1], items[2])
+
+
+def _decoded(text: Any) -> bytes:
+    try:
+        return base64.b64decode(typed(text, str), validate=True)
+    except binascii.Error as exc:
+        raise ValueError(f"descriptor is not base64 ({exc})") from exc

@@ -4,7 +4,8 @@ A library is a directory::
 
     catalogue.sqlite                   format version, extractor, timestamps, one row per entry
                                        (its file, checksums, source, category...): catalogue.py
-    entries/<id>-<sha256[:12]>.npz     one entry's arrays, aligned to be memory-mapped (npz.py)
+    entries/<id>-<sha256[:12]>.npz     one entry's arrays, narrowed and deflated (npz.py), read
+                                       when the entry is first needed
     .lock                              flock(2)ed by writers
     .writing                           a writer's mark, there until its clean-up is done
 
@@ -33,6 +34,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from catalign.atomic import atomic_write_bytes, fsync_directory
 from catalign.errors import LibraryCorruptError
 from catalign.geometry.symmetry import YawSymmetry, find_yaw_symmetry
@@ -41,7 +44,7 @@ from catalign.library.catalogue import Stamp
 from catalign.library.catalogue_db import CATALOGUE_NAME, LEGACY_MANIFEST_NAME, recover
 from catalign.library.entry import LibraryEntry
 from catalign.library.entry_codec import entry_bytes, entry_from_arrays
-from catalign.library.npz import map_file, mapped_arrays
+from catalign.library.npz import npz_arrays
 from catalign.library.records import (
     ENTRIES_DIR,
     FORMAT_VERSION,
@@ -167,17 +170,23 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
         size=vector(entry.size),
         category=entry.category,
         symmetry=entry.symmetry.order,
+        descriptor=descriptor_bytes(entry.descriptor),
     )
 
 
+def descriptor_bytes(descriptor: np.ndarray) -> bytes:
+    """A descriptor as its catalogue column holds it: float32, little-endian."""
+    return np.ascontiguousarray(descriptor, dtype="<f4").tobytes()
+
+
 def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> LibraryEntry:
-    """Read one entry file and check it against its record; its arrays view a read-only map of
-    the file, shared with every process that reads the same library.
+    """Read one entry file and check it against its record (its checksum, its arrays, the
+    descriptor the catalogue holds for it).
 
     A missing file raises FileNotFoundError (the caller may read the catalogue again: it may have
     changed meanwhile); any other problem raises LibraryCorruptError naming the entry.
     """
-    data = map_file(library_dir / record.file)
+    data = (library_dir / record.file).read_bytes()
 
     def corrupt(problem: str) -> LibraryCorruptError:
         return LibraryCorruptError(
@@ -191,8 +200,8 @@ def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> Library
             f"fails its checksum (sha256 {actual[:12]}..., expected {record.sha256[:12]}...)"
         )
     try:
-        arrays = mapped_arrays(data)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        arrays = npz_arrays(data)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise corrupt(f"is not a readable .npz file ({exc})") from exc
     try:
         entry = entry_from_arrays(arrays)
@@ -202,6 +211,8 @@ def read_entry(library_dir: Path, model_id: str, record: EntryRecord) -> Library
         raise corrupt(f"holds model {entry.model_id!r}")
     if (entry.num_points, entry.num_keypoints) != (record.num_points, record.num_keypoints):
         raise corrupt("does not match the point counts in the catalogue")
+    if descriptor_bytes(entry.descriptor) != record.descriptor:
+        raise corrupt("does not match the descriptor in the catalogue")
     if record.symmetry is None:
         symmetry = find_yaw_symmetry(entry.points)
     else:
@@ -213,7 +224,7 @@ def commit(library_dir: Path, manifest: Manifest) -> None:
     """Make ``manifest`` the library's state (a build): fsync the new entry files' folder,
     write the rows that differ in one transaction (a new catalogue renamed into place where
     there was none), then delete whatever it no longer references."""
-    _sync_entries(library_dir)
+    fsync_entries(library_dir)
     if catalogue.exists(library_dir):
         released = catalogue.replace(library_dir, manifest)
     else:
@@ -233,7 +244,7 @@ def commit_changes(
     and the library row's ``library`` fields (``updated``, ``engine``...), after fsyncing the
     folder of the new entry files; then delete the files of the entries replaced or removed."""
     if put:
-        _sync_entries(library_dir)
+        fsync_entries(library_dir)
     released = catalogue.update(library_dir, put=put or {}, drop=drop, library=library)
     _tidy(library_dir, released)
 
@@ -265,7 +276,7 @@ def clean_unreferenced(library_dir: Path, referenced: set[str]) -> None:
         fsync_directory(library_dir)
 
 
-def _sync_entries(library_dir: Path) -> None:
+def fsync_entries(library_dir: Path) -> None:
     """Make the new entry files' names durable before a row names them."""
     entries_dir = library_dir / ENTRIES_DIR
     entries_dir.mkdir(parents=True, exist_ok=True)

@@ -26,6 +26,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from catalign.errors import ConfigError
+from catalign.library.quantise import STORED_KEYPOINTS
 from catalign.options import OptionGroup, one_line_descriptions
 from catalign.registration.prepare.detached import CleanupOptions
 from catalign.registration.prepare.floor import FloorOptions
@@ -52,9 +53,10 @@ class MatchOptions(OptionGroup):
 
     query_points: int | None = Field(default=500, ge=1)
     """Query key points that take part in matching (None: all)."""
-    model_points: int | None = Field(default=1_000, ge=1)
-    """Each model's key points that take part in matching (None: all); fewer matched points
-    measured as accurate and a third faster (``bench/tradeoff.py``)."""
+    model_points: int | None = Field(default=STORED_KEYPOINTS, ge=1)
+    """Each model's key points that take part in matching (None: all an entry keeps, which is
+    this default); fewer matched points measured as accurate and a third faster
+    (``bench/tradeoff.py``)."""
     keep_headings: int = Field(default=3, ge=1)
     """Headings that go through RANSAC, chosen on the ``heading_models`` best shortlisted
     models."""

@@ -57,7 +57,7 @@ class IndexedRegistrar(Registrar):
                     mesh = trimesh.Trimesh(shape.mesh.vertices, shape.mesh.faces, process=False)
                     mesh.export(place / f"{shape.model_id}.ply")
             build([sources], Path(folder) / "index", self.extractor, progress=False)
-            index = load(Path(folder) / "index", self.extractor.fingerprint)
+            index = load(Path(folder) / "index", self.extractor.fingerprint).in_memory()
         self.engine = Engine(self.extractor, index, config=self.config, calibrator=self.calibrator)
 
     def register(

@@ -14,7 +14,6 @@ nothing, so a client may send the change again when its answer was lost.
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path as FilePath
 from typing import Annotated
 
@@ -137,15 +136,16 @@ async def list_models(
     at a time, and how many models each category holds."""
     if category is not None:
         validate_category(category)
-    everything = await service.models()
-    kept = [e for e in everything if category in (None, e.category)]
-    entries, next_cursor = page([e.model_id for e in kept], kept, limit, cursor)
-    counts = Counter(entry.category for entry in everything)
+    library = await service.current_library()
+    ids = library.ids
+    if category is not None:
+        ids = [i for i, c in zip(ids, library.categories, strict=True) if c == category]
+    shown, next_cursor = page(ids, ids, limit, cursor)
     return ModelList(
-        count=len(entries),
-        total=len(kept),
-        models=[ModelPublic.from_entry(e) for e in entries],
-        categories=dict(sorted(counts.items())),
+        count=len(shown),
+        total=len(ids),
+        models=[ModelPublic.of(library, model_id) for model_id in shown],
+        categories=library.category_counts(),
         next_cursor=next_cursor,
     )
 
@@ -184,7 +184,7 @@ async def get_model_points(
 )
 async def get_model(model_id: ModelId, service: ServiceDep) -> ModelPublic:
     """One model of the library."""
-    return ModelPublic.from_entry(await service.model(model_id))
+    return ModelPublic.of(await service.current_library(), model_id)
 
 
 @router.post(
@@ -242,9 +242,8 @@ async def remove_model(
         return removed(await service.remove_model(model_id))
 
     async def committed() -> Answer | None:
-        models = await service.models()
-        present = any(entry.model_id == model_id for entry in models)
-        return None if present else removed(len(models))
+        library = await service.current_library()
+        return None if model_id in library else removed(len(library))
 
     asked = {"method": "DELETE", "path": f"/models/{model_id}"}
     return await once(keys, key, Change(asked, remove, committed))

@@ -23,14 +23,11 @@ from dataclasses import KW_ONLY, dataclass, field
 import numpy as np
 
 from catalign.library.loaded import Library
+from catalign.library.quantise import stored_rows
 from catalign.registration.stages.describe import QueryView
 from catalign.registration.stages.gravity import yaw_ransac
 from catalign.registration.stages.model_cache import ModelCache
 from catalign.registration.stages.nearest import mutual_count, mutual_nearest
-
-# Model subsets are drawn with this seed, so a model matches through the same key points
-# whatever the query's seed.
-_MODEL_SUBSET_SEED = 0
 
 
 @dataclass(frozen=True)
@@ -78,12 +75,11 @@ def model_subset(
     keypoints: np.ndarray, features: np.ndarray, model_points: int | None
 ) -> Matchable:
     """At most ``model_points`` (None: all) of a model's key points, a fixed random subset in
-    ascending order of rows."""
-    rows = np.arange(len(keypoints))
-    if model_points is None or len(rows) <= model_points:
+    ascending order of rows, the same whatever the query (:func:`stored_rows`: the library
+    keeps the subset of the default size)."""
+    rows = stored_rows(len(keypoints), model_points)
+    if len(rows) == len(keypoints):
         return Matchable(rows, features, keypoints)
-    rng = np.random.default_rng(_MODEL_SUBSET_SEED)
-    rows = np.sort(rng.permutation(rows)[:model_points])
     return Matchable(rows, features[rows], keypoints[rows])
 
 
