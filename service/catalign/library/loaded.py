@@ -93,8 +93,9 @@ class Library:
         self.descriptors = np.array(vectors, dtype=np.float32).reshape(len(self.ids), width)
         self.sizes = np.array(sizes, dtype=np.float64).reshape(len(self.ids), 3)
         self.categories = np.array(categories, dtype=object)
-        held_categories = set(categories)
-        self._only_category = held_categories.pop() if len(held_categories) == 1 else ""
+        names, counts = np.unique(self.categories.astype(str), return_counts=True)
+        self._counts = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
+        self._only_category = str(names[0]) if len(names) == 1 else ""
         # Unit-length descriptors, so that a query's cosine with every entry is one product.
         norms = np.linalg.norm(self.descriptors, axis=1, keepdims=True)
         self.unit_descriptors = self.descriptors / np.maximum(norms, 1e-12)
@@ -108,8 +109,7 @@ class Library:
 
     def category_counts(self) -> dict[str, int]:
         """How many entries each category holds, by name."""
-        names, counts = np.unique(self.categories.astype(str), return_counts=True)
-        return {str(name): int(count) for name, count in zip(names, counts, strict=True)}
+        return dict(self._counts)
 
     def only_category(self) -> str:
         """The category of every entry, or "" when the library holds several (or none)."""
