@@ -4,8 +4,8 @@ Each library holds every shared chair and table (the validation ones are observe
 ones are distractors of their category) and ``N`` procedural chairs (seeds from
 :data:`FIRST_SEED`, far from those the retrieval encoders were trained on), built through
 ``catalign.library.index.build`` with every core, once per weights and ``N``, into ``--cache``.
-Every entry is a real build, except with ``--copies TOTAL``: then each library is also grown to
-``TOTAL`` entries by copies of its procedural distractors under new ids (``<id>-copy<k>``,
+Every entry is a real build, except with ``--copies TOTAL``: then the largest library is also
+grown to ``TOTAL`` entries by copies of its procedural distractors under new ids (``<id>-copy<k>``,
 their arrays unchanged), as many entries as cannot be built on two cores in an hour. A copy
 adds no shape the library did not hold, so those rows measure serving at that size (memory,
 latency, the shortlist's scan), not how retrieval copes with that many different shapes. The
@@ -208,7 +208,8 @@ def main() -> None:
             continue
         built = library_for(args.cache, described_by, shared, distractors)
         folders = [(kind, built)]
-        if args.copies is not None and kind == "retrieval encoders":
+        largest = distractors == max(args.distractors)
+        if args.copies is not None and kind == "retrieval encoders" and largest:
             grown = with_copies(built, args.copies, args.threads)
             folders.append((f"{kind}, copies", grown))
         for label, folder in folders:
