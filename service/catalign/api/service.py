@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import platform
 import time
 from collections.abc import Callable
 from functools import partial
@@ -27,20 +26,23 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-import catalign
+from catalign.api.about import service_info
 from catalign.api.errors import BusyError, EmptyLibraryError, ModelExistsError
 from catalign.api.inputs import PointQuery, Upload, check_cloud, shown_as
 from catalign.api.metrics import Metrics
 from catalign.api.pool import Slot, WorkPool
 from catalign.api.processes import EngineProcesses, Job, served_engine, warm_up
-from catalign.api.schemas import InfoResponse, LibraryInfo, Versions
+from catalign.api.schemas import InfoResponse
 from catalign.api.settings import ServiceSettings
 from catalign.api.spool import Spool
 from catalign.deadline import Deadline
-from catalign.errors import CatalignError, ConfigError, DeadlineExceededError
+from catalign.errors import (
+    CatalignError,
+    ConfigError,
+    DeadlineExceededError,
+    LibraryChangedError,
+)
 from catalign.library.store import Stamp, manifest_stamp
-from catalign.paths import category_companions
-from catalign.registration.config import served_config
 from catalign.threads import limit_threads, release_free_memory
 
 if TYPE_CHECKING:
@@ -51,6 +53,10 @@ if TYPE_CHECKING:
     from catalign.registration.results import RegistrationResult
 
 logger = logging.getLogger(__name__)
+
+# Times a registration starts again on the library as it is now when an entry it shortlisted
+# was replaced or removed on disk while it ran (each start loads the changed library first).
+_CHANGED_RETRIES = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,15 +164,22 @@ class RegistrationService:
         shorter (a gRPC deadline); a caller that stops waiting (a cancelled task) stops the work.
         """
         deadline = Deadline(min(self.settings.deadline_s, deadline_s or self.settings.deadline_s))
-        await self.refresh(slot)
-        served = self.served
-        if len(served.library) == 0:
-            raise EmptyLibraryError("the library has no models; add one with POST /models")
         submitted = time.perf_counter()
         try:
-            result = await self.pool.run(
-                self._register, served, query, submitted, deadline, slot=slot, deadline=deadline
-            )
+            for attempt in range(_CHANGED_RETRIES + 1):
+                await self.refresh(slot)
+                served = self.served
+                if len(served.library) == 0:
+                    raise EmptyLibraryError("the library has no models; add one with POST /models")
+                try:
+                    result = await self.pool.run(
+                        self._register, served, query, submitted, deadline, slot=slot,
+                        deadline=deadline,
+                    )  # fmt: skip
+                    break
+                except LibraryChangedError:  # an entry it shortlisted was replaced meanwhile
+                    if attempt == _CHANGED_RETRIES:
+                        raise
         except DeadlineExceededError:
             self.metrics.stopped.labels("deadline").inc()
             raise
@@ -212,37 +225,7 @@ class RegistrationService:
             await asyncio.to_thread(release_free_memory)  # what the old library's engine held
 
     def info(self) -> InfoResponse:
-        import open3d
-        import torch
-
-        served, extractor = self.served, self.served.extractor
-        manifest = served.library.manifest
-        config = served_config(self.settings.engine, manifest.engine)
-        headings = config.orient.headings or extractor.headings
-        return InfoResponse(
-            version=catalign.__version__,
-            model_card=extractor.card,
-            categories=category_companions(extractor.model_dir),
-            library=LibraryInfo(
-                path=str(self.settings.library),
-                format_version=manifest.format_version,
-                models=len(served.library),
-                fingerprint=manifest.fingerprint,
-                updated=manifest.updated,
-                engine=manifest.engine,
-            ),
-            voxel_size=extractor.voxel_size,
-            headings=headings,
-            engine=config.model_copy(
-                update={"orient": config.orient.model_copy(update={"headings": headings})}
-            ),
-            versions=Versions(
-                python=platform.python_version(),
-                torch=str(torch.__version__),
-                open3d=str(open3d.__version__),
-                numpy=np.__version__,
-            ),
-        )
+        return service_info(self.settings, self.served.extractor, self.served.library)
 
     # library changes --------------------------------------------------------------------------
 
