@@ -35,7 +35,7 @@ KEY = {"X-API-Key": "fuzz-key-0123"}
 OCTET = "application/octet-stream"
 # Per operation, positive, negative and chair cases together; CATALIGN_FUZZ_EXAMPLES digs deeper,
 # and bench/contract.py sends tens of thousands (docs/benchmarks.md, "Contract at volume").
-MAX_EXAMPLES = int(os.environ.get("CATALIGN_FUZZ_EXAMPLES", "300"))
+MAX_EXAMPLES = int(os.environ.get("CATALIGN_FUZZ_EXAMPLES", "200"))
 VIEW_POINTS = 2000  # a subsampled view keeps each registration well under a second
 VIEWS = [(0, 0.7), (1, 2.5), (2, 4.4)]  # (library chair seed, yaw)
 CHECKS = [  # no 5xx; status, content type, body and headers as documented; bad input refused
