@@ -24,7 +24,7 @@ from catalign.features.retrieval import (
     packed,
 )
 from catalign.training.config import RetrievalConfig
-from catalign.training.retrieval import run
+from catalign.training.retrieval import _hardest, run
 
 
 def _cloud(seed: int, count: int = 300) -> tuple[np.ndarray, np.ndarray]:
@@ -141,3 +141,40 @@ def test_replaced_weights_are_refused(trained, tmp_path: Path) -> None:
     weights.write_bytes(weights.read_bytes()[:-8] + b"\0" * 8)
     with pytest.raises(ConfigError, match="does not match its card"):
         load_retrieval(tmp_path)
+
+
+def test_hard_negatives_are_the_nearest_models_other_than_the_steps_own() -> None:
+    # 2 views, 6 models: view 0 is nearest models 5, 4, 3; view 1 models 1 (its own), 2, 3
+    nearest = torch.tensor(
+        [[0.9, 0.1, 0.2, 0.6, 0.7, 0.8], [0.1, 0.9, 0.8, 0.7, 0.2, 0.3]], dtype=torch.float32
+    )
+    positives = np.array([0, 1])
+    hard = _hardest(nearest, positives, 1, np.random.default_rng(0))
+    assert set(hard) <= {2, 3, 4, 5} and len(hard) == len(set(hard)) >= 1
+    # with count 2 each view draws 2 of its 6 nearest others: at most every other model
+    assert set(_hardest(nearest, positives, 2, np.random.default_rng(1))) <= {2, 3, 4, 5}
+
+
+@pytest.mark.slow
+def test_training_starts_from_given_encoders_and_names_them(trained, tmp_path: Path) -> None:
+    parent_dir, parent = trained
+    config = RetrievalConfig(
+        steps=2, batch_size=3, negatives=2, procedural=2, views_per_shape=1,
+        hard_negatives=1, mining_every=1, init_from=parent_dir, out=tmp_path / "child",
+    )  # fmt: skip
+    card = run(config, [_Procedural()], LearnedExtractor(), progress=False)
+    assert card["started_from"] == parent["sha256"] != card["sha256"]
+    assert f"--init-from {parent_dir}" in card["command"]
+    assert "--hard-negatives 1" in card["command"]
+
+
+@pytest.mark.slow
+def test_encoders_over_other_features_are_refused_as_a_start(trained, tmp_path: Path) -> None:
+    parent_dir, parent = trained
+    folder = tmp_path / "foreign"
+    folder.mkdir()
+    (folder / WEIGHTS_FILE).write_bytes((parent_dir / WEIGHTS_FILE).read_bytes())
+    (folder / CARD_FILE).write_text(json.dumps({**parent, "extractor": "0" * 64}))
+    config = RetrievalConfig(steps=1, procedural=0, init_from=folder, out=tmp_path / "child")
+    with pytest.raises(ConfigError, match="train from scratch"):
+        run(config, [_Procedural()], LearnedExtractor(), progress=False)

@@ -104,6 +104,12 @@ def learned_fingerprint(weights_sha256: str, retrieval_sha256: str | None) -> st
     return f"{weights_sha256}+retrieval-{retrieval_sha256[:16]}"
 
 
+def features_fingerprint(fingerprint: str) -> str:
+    """The part of an extractor's fingerprint that names its features (its weights' sha256),
+    without its retrieval encoders: entries with the same one have comparable features."""
+    return fingerprint.split("+retrieval-", 1)[0]
+
+
 def fingerprint_in(model_dir: Path) -> str:
     """The fingerprint of the weights in ``model_dir`` from their cards alone (nothing loaded),
     for a check before a server starts; the cards' checksums are checked when it loads them."""

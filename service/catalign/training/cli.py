@@ -284,6 +284,17 @@ def train_retrieval(
     procedural: Annotated[
         int, typer.Option(min=0, help="Procedural chairs among the training models.")
     ] = RETRIEVAL.procedural,
+    learning_rate: Annotated[
+        float, typer.Option(min=0.0, help="Adam's learning rate (cosine decay to 0).")
+    ] = RETRIEVAL.learning_rate,
+    hard_negatives: Annotated[
+        int,
+        typer.Option(min=0, help="Models each view is nearest to, added to its negatives."),
+    ] = RETRIEVAL.hard_negatives,
+    init_from: Annotated[
+        Path | None,
+        typer.Option(help="Encoders to start from, e.g. model_store/retrieval (default: none)."),
+    ] = RETRIEVAL.init_from,
     seed: Annotated[int, typer.Option(help="Seed of the views and the training.")] = RETRIEVAL.seed,
     threads: Annotated[int, typer.Option(min=1, help="torch threads.")] = RETRIEVAL.threads,
     model_dir: Annotated[
@@ -301,7 +312,15 @@ def train_retrieval(
     from catalign.training.retrieval import run
 
     config = options_to(
-        RetrievalConfig, out=out, steps=steps, procedural=procedural, seed=seed, threads=threads
+        RetrievalConfig,
+        out=out,
+        steps=steps,
+        procedural=procedural,
+        learning_rate=learning_rate,
+        hard_negatives=hard_negatives,
+        init_from=init_from,
+        seed=seed,
+        threads=threads,
     )
     with exit_on_error():
         sources = training_sources(["chair", "table"], None, "m", chairs_dir, tables_dir)

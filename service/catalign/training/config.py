@@ -149,6 +149,17 @@ class RetrievalConfig(BaseModel):
     negatives: int = Field(
         96, ge=0, description="other models each step's views are scored against"
     )
+    hard_negatives: int = Field(
+        4,
+        ge=0,
+        description="models each view is most often mistaken for, added to its step's negatives",
+    )
+    mining_every: int = Field(
+        100, ge=1, description="steps between two descriptions of every model, for mining"
+    )
+    init_from: Path | None = Field(
+        None, description="retrieval encoders to start from (a folder with their card)"
+    )
     temperature: float = Field(0.07, gt=0)
     learning_rate: float = Field(1e-3, gt=0)
     dims: int = Field(256, ge=8, description="the descriptor's length")
@@ -174,9 +185,12 @@ class RetrievalConfig(BaseModel):
 
     def command(self) -> str:
         """The ``catalign train-retrieval`` command line that runs this configuration."""
+        start = "" if self.init_from is None else f" --init-from {self.init_from}"
         return (
             f"catalign train-retrieval --out {self.out} --steps {self.steps} "
-            f"--procedural {self.procedural} --seed {self.seed} --threads {self.threads}"
+            f"--procedural {self.procedural} --learning-rate {self.learning_rate:g} "
+            f"--hard-negatives {self.hard_negatives} "
+            f"--seed {self.seed} --threads {self.threads}{start}"
         )
 
 
