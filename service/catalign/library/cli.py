@@ -225,6 +225,33 @@ def migrate(
     typer.echo(f"{library}: {done}, {len(manifest.entries)} models")
 
 
+@app.command()
+def redescribe(
+    library: Annotated[Path, typer.Argument(help="Library folder.")],
+    model_dir: ModelDir = None,
+) -> None:
+    """Give a library the shortlisting descriptors of new retrieval encoders (over the same
+    feature weights), from its own entries: no source file is read, no feature computed again.
+    Safe to interrupt and run again."""
+    from tqdm import tqdm
+
+    from catalign.library.redescribe import redescribe as redescribe_library
+    from catalign.library.store import read_manifest
+
+    with exit_on_error():
+        extractor = _extractor(model_dir)
+        before = read_manifest(library).fingerprint
+        with tqdm(desc=f"describing {library.name}", unit="entry", disable=None) as bar:
+
+            def advance(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            manifest = redescribe_library(library, extractor, advance)
+    done = "already described by" if before == manifest.fingerprint else "now described by"
+    typer.echo(f"{library}: {len(manifest.entries)} models {done} {manifest.fingerprint}")
+
+
 def _symmetric(manifest: Any) -> str:
     """``12 (half turn 9, quarter turn 2, any turn 1)``: the entries that look the same
     turned about their up, by symmetry order."""

@@ -7,11 +7,12 @@ converted to metres (``source * unit_factor(units)``) before anything is stored,
 against an entry maps *source coordinates converted to metres* into the observation. The
 points are narrowed to what their file keeps (:mod:`~catalign.library.quantise`) before
 anything is computed from them. The extractor then gives key points and features,
-:func:`~catalign.library.retrieval.model_descriptor` the vector used for shortlisting (from all
-of them), and :class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated
-distance field that verification reads instead of searching the points; the entry keeps the
+and :class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated distance
+field that verification reads instead of searching the points; the entry keeps the
 :data:`~catalign.library.quantise.STORED_KEYPOINTS` key points matching reads, their features
-narrowed to 8 bits.
+narrowed to 8 bits, and :func:`~catalign.library.retrieval.model_descriptor` the vector used for
+shortlisting, from exactly those (so that new retrieval encoders can describe a built library
+again from its entries: :mod:`~catalign.library.redescribe`).
 """
 
 from __future__ import annotations
@@ -172,6 +173,8 @@ def describe_shape(
             "is the declared unit right?"
         )
     kept = stored_rows(len(described.keypoints), STORED_KEYPOINTS)
+    keypoints = described.keypoints[kept].astype(np.float32).astype(np.float64)
+    features = narrowed_features(described.features[kept])
     voxel = extractor.voxel_size
     grid = DistanceGrid.around(
         points,
@@ -183,9 +186,9 @@ def describe_shape(
     return LibraryEntry(
         model_id=model_id,
         points=points,
-        keypoints=described.keypoints[kept].astype(np.float32).astype(np.float64),
-        features=narrowed_features(described.features[kept]),
-        descriptor=model_descriptor(extractor, described.keypoints, described.features),
+        keypoints=keypoints,
+        features=features,
+        descriptor=model_descriptor(extractor, keypoints, features),
         bbox_min=bbox_min,
         bbox_max=bbox_max,
         size=bbox_max - bbox_min,

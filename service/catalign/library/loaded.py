@@ -220,12 +220,23 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
 
 
 def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
-    if manifest.fingerprint != fingerprint:
+    """Refuse a library whose features or descriptors another extractor made, saying what
+    mends it: new descriptors alone, or a rebuild."""
+    from catalign.features.extractor import features_fingerprint  # torch: only when needed
+
+    if manifest.fingerprint == fingerprint:
+        return
+    if features_fingerprint(manifest.fingerprint) == features_fingerprint(fingerprint):
         raise LibraryMismatchError(
-            f"the library at {library_dir} was built with feature extractor "
-            f"{manifest.fingerprint!r}, but this one is {fingerprint!r}, so their features are "
-            f"not comparable; {rebuild_hint(library_dir)} (with the current extractor)"
+            f"the library at {library_dir} was shortlisted by other retrieval encoders "
+            f"({manifest.fingerprint!r}) than this extractor's ({fingerprint!r}); describe it "
+            f"again from its entries with `catalign library redescribe {library_dir}`"
         )
+    raise LibraryMismatchError(
+        f"the library at {library_dir} was built with feature extractor "
+        f"{manifest.fingerprint!r}, but this one is {fingerprint!r}, so their features are "
+        f"not comparable; {rebuild_hint(library_dir)} (with the current extractor)"
+    )
 
 
 def _files_present(library_dir: Path, manifest: Manifest, stamp: Stamp) -> bool:
