@@ -3,7 +3,9 @@
 Each library holds every shared chair and table (the validation ones are observed, the training
 ones are distractors of their category) and ``N`` procedural chairs (seeds from
 :data:`FIRST_SEED`, far from those the retrieval encoders were trained on), built through
-``catalign.library.index.build`` with every core, once per weights and ``N``, into ``--cache``.
+``catalign.library.index.build`` with every core, once per weights and ``N``, into ``--cache``
+(for new retrieval encoders over the same features, described again from the cached one:
+``catalign.library.redescribe``).
 Every entry is a real build, except with ``--copies TOTAL``: then the largest library is also
 grown to ``TOTAL`` entries by copies of its procedural distractors under new ids (``<id>-copy<k>``,
 their arrays unchanged), as many entries as cannot be built on two cores in an hour. A copy
@@ -45,11 +47,12 @@ from catalign.data.procedural import generate_chair
 from catalign.data.shapes import Shape, SharedChairs, SharedTables
 from catalign.data.views import WORLD_UP
 from catalign.evaluation.protocol import build_cases, frames_of, symmetries_of
-from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor
+from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor, features_fingerprint
 from catalign.features.retrieval import RETRIEVAL_DIR
 from catalign.geometry.ncc import NCCFrame
 from catalign.library.index import build
 from catalign.library.loaded import load
+from catalign.library.redescribe import redescribe
 from catalign.library.store import (
     commit_changes,
     has_manifest,
@@ -81,9 +84,27 @@ def write_sources(folder: Path, shared: dict[str, dict[str, Shape]], distractors
 
 
 def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distractors: int) -> Path:
-    """The library of the shared shapes and ``distractors`` procedural chairs (built once)."""
+    """The library of the shared shapes and ``distractors`` procedural chairs (built once, or
+    described again from a cached one of the same features and other retrieval encoders)."""
     out = cache / extractor.fingerprint.replace("+", "_") / f"distractors-{distractors}"
     if not has_manifest(out):
+        same_features = [
+            folder
+            for folder in sorted(cache.glob(f"*/distractors-{distractors}"))
+            if has_manifest(folder)
+            and features_fingerprint(read_manifest(folder).fingerprint)
+            == features_fingerprint(extractor.fingerprint)
+        ]
+        if same_features:
+            partial = out.with_name(out.name + ".partial")
+            shutil.rmtree(partial, ignore_errors=True)
+            shutil.copytree(same_features[0], partial, ignore=shutil.ignore_patterns(".lock"))
+            started = time.perf_counter()
+            with tqdm(desc=f"describing {out.name} again", unit="entry") as bar:
+                redescribe(partial, extractor, lambda done, total: bar.update(done - bar.n))
+            partial.rename(out)
+            print(f"described {out} again in {time.perf_counter() - started:.0f} s")
+            return out
         with tempfile.TemporaryDirectory(dir=cache) as folder:
             write_sources(Path(folder), shared, distractors)
             started = time.perf_counter()

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 
 pytestmark = pytest.mark.slow
 
-FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "15"))
+FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "10"))
 DEADLINE_S = 10.0
 PROBE_EVERY_S = 0.05
 

@@ -37,7 +37,7 @@ pytestmark = [
 ]
 
 FLOOD_CLIENTS = 16
-FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "20"))
+FLOOD_S = float(os.environ.get("CATALIGN_FLOOD_SECONDS", "12"))
 
 State = frozenset[tuple[str, str]]  # a library as (model id, source) pairs
 
