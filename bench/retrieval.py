@@ -46,6 +46,7 @@ from tqdm import tqdm
 from catalign.data.procedural import generate_chair
 from catalign.data.shapes import Shape, SharedChairs, SharedTables
 from catalign.data.views import WORLD_UP
+from catalign.errors import LibraryError
 from catalign.evaluation.protocol import build_cases, frames_of, symmetries_of
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor, features_fingerprint
 from catalign.features.retrieval import RETRIEVAL_DIR
@@ -88,12 +89,11 @@ def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distract
     described again from a cached one of the same features and other retrieval encoders)."""
     out = cache / extractor.fingerprint.replace("+", "_") / f"distractors-{distractors}"
     if not has_manifest(out):
+        features = features_fingerprint(extractor.fingerprint)
         same_features = [
             folder
-            for folder in sorted(cache.glob(f"*/distractors-{distractors}"))
-            if has_manifest(folder)
-            and features_fingerprint(read_manifest(folder).fingerprint)
-            == features_fingerprint(extractor.fingerprint)
+            for folder in sorted(cache.glob(f"{features}*/distractors-{distractors}"))
+            if _features_of(folder) == features
         ]
         if same_features:
             partial = out.with_name(out.name + ".partial")
@@ -111,6 +111,15 @@ def library_for(cache: Path, extractor: LearnedExtractor, shared: dict, distract
             build([folder], out, extractor, overwrite=True, workers=2)
             print(f"built {out} in {time.perf_counter() - started:.0f} s")
     return out
+
+
+def _features_of(library_dir: Path) -> str | None:
+    """Whose features a cached library holds; None where it holds no library this catalign
+    reads (an older format: rebuilt rather than converted)."""
+    try:
+        return features_fingerprint(read_manifest(library_dir).fingerprint)
+    except LibraryError:
+        return None
 
 
 def with_copies(library_dir: Path, total: int, workers: int) -> Path:

@@ -330,7 +330,7 @@ def train_retrieval(
     typer.echo(json.dumps(card["held_out"], indent=2))
     typer.echo(
         f"retrieval encoders written to {out} (ship them: copy {WEIGHTS_FILE} and {CARD_FILE} "
-        "to model_store/retrieval/, then rebuild every library)"
+        "to model_store/retrieval/, then run `catalign library redescribe DIR` on every library)"
     )
 
 
