@@ -51,10 +51,12 @@ from catalign.api.app import create_app
 from catalign.api.metrics import Metrics
 from catalign.api.settings import ServiceSettings
 from catalign.cli import app as cli_app
+from catalign.errors import LibraryMismatchError
+from catalign.features.extractor import features_fingerprint
 from catalign.library import catalogue
 from catalign.library.loaded import load
 from catalign.library.sources import validate_category
-from catalign.library.store import read_manifest
+from catalign.library.store import commit_changes, read_manifest
 from catalign.registration.config import parse_options
 from catalign_client import Client
 
@@ -990,7 +992,8 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     """The base writer's seed-library script, run as its init container runs it (the volume
     and the image's folder replaced by folders here): an empty volume gets the image's library,
     entries first and the catalogue last; a second start changes nothing; a library of format 2
-    or 3 (seeded by an older image) is converted in place, to the entries the image holds."""
+    or 3 (seeded by an older image) is converted in place, to the entries the image holds, and
+    one other retrieval encoders described is described again with the image's."""
     from tests.library.conftest import as_format_2, as_format_3
 
     writer = find("dev", "Deployment", WRITER)
@@ -1030,3 +1033,11 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     as_format_3(volume)
     assert "converted from format 3 to format 4" in run()
     assert read_manifest(volume).entries == shipped.entries
+    # described by other retrieval encoders: described again with the image's, as it ships
+    other = f"{features_fingerprint(shipped.fingerprint)}+retrieval-{'0' * 16}"
+    commit_changes(volume, fingerprint=other)
+    with pytest.raises(LibraryMismatchError, match="catalign library redescribe"):
+        load(volume, shipped.fingerprint)
+    assert "now described by" in run()
+    assert read_manifest(volume).entries == shipped.entries
+    assert len(load(volume, shipped.fingerprint)) == len(shipped.entries)
