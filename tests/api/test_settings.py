@@ -101,8 +101,26 @@ def test_serve_refuses_bad_flags_in_one_sentence(tmp_path: Path) -> None:
 
 
 def test_serve_refuses_a_library_of_other_weights_in_one_sentence(tmp_path: Path) -> None:
-    # the shipped weights without their retrieval encoders: the shipped library's descriptors
-    # are the encoders', so it is refused before start-up, with the command that rebuilds it
+    # other feature weights (a card of another sha256): refused before start-up, with the
+    # command that rebuilds the library
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "model.safetensors").symlink_to(DEFAULT_MODEL_DIR / "model.safetensors")
+    card = json.loads((DEFAULT_MODEL_DIR / "model_card.json").read_text())
+    (other / "model_card.json").write_text(json.dumps({**card, "sha256": "0" * 64}))
+    library = DEFAULT_MODEL_DIR / "library"
+    flags = ["--model-dir", str(other), "--library", str(library)]
+    result = CliRunner().invoke(app, ["serve", *flags])
+    assert result.exit_code == 2, result.output
+    assert "built with feature extractor" in result.output
+    assert "catalign library build" in result.output and "Traceback" not in result.output
+
+
+def test_serve_refuses_a_library_of_other_retrieval_encoders_naming_redescribe(
+    tmp_path: Path,
+) -> None:
+    # the shipped weights without their retrieval encoders: the features match, the library's
+    # descriptors are the encoders', so it is refused with the command that describes it again
     for name in ("model.safetensors", "model_card.json"):
         (tmp_path / name).symlink_to(DEFAULT_MODEL_DIR / name)
     library = DEFAULT_MODEL_DIR / "library"
@@ -110,8 +128,9 @@ def test_serve_refuses_a_library_of_other_weights_in_one_sentence(tmp_path: Path
         app, ["serve", "--model-dir", str(tmp_path), "--library", str(library)]
     )
     assert result.exit_code == 2, result.output
-    assert "built with feature extractor" in result.output
-    assert "catalign library build" in result.output and "Traceback" not in result.output
+    assert "shortlisted by other retrieval encoders" in result.output
+    assert f"catalign library redescribe {library}" in result.output.replace("\n", "")
+    assert "Traceback" not in result.output
 
 
 def test_serve_engine_flags_go_over_the_variables_field_by_field(

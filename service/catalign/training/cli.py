@@ -288,8 +288,7 @@ def train_retrieval(
         float, typer.Option(min=0.0, help="Adam's learning rate (cosine decay to 0).")
     ] = RETRIEVAL.learning_rate,
     hard_negatives: Annotated[
-        int,
-        typer.Option(min=0, help="Models each view is nearest to, added to its negatives."),
+        int, typer.Option(min=0, help="Models each view is nearest to, added as negatives.")
     ] = RETRIEVAL.hard_negatives,
     init_from: Annotated[
         Path | None,
@@ -311,17 +310,9 @@ def train_retrieval(
     from catalign.features.retrieval import CARD_FILE, WEIGHTS_FILE
     from catalign.training.retrieval import run
 
-    config = options_to(
-        RetrievalConfig,
-        out=out,
-        steps=steps,
-        procedural=procedural,
-        learning_rate=learning_rate,
-        hard_negatives=hard_negatives,
-        init_from=init_from,
-        seed=seed,
-        threads=threads,
-    )
+    config = options_to(RetrievalConfig, out=out, steps=steps, procedural=procedural,
+                        learning_rate=learning_rate, hard_negatives=hard_negatives,
+                        init_from=init_from, seed=seed, threads=threads)  # fmt: skip
     with exit_on_error():
         sources = training_sources(["chair", "table"], None, "m", chairs_dir, tables_dir)
         extractor = LearnedExtractor(model_dir)
