@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 import time
 from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -203,20 +205,13 @@ def migrate(
     """Convert a library of an older format (2: manifest.json, 3: catalogue.sqlite with full
     entries) in place: every entry rewritten small, no features computed again (no weights
     needed), a new catalogue.sqlite. Safe to interrupt and run again."""
-    from tqdm import tqdm
-
     from catalign.library.legacy import format_of
     from catalign.library.legacy import migrate as migrate_library
     from catalign.library.records import FORMAT_VERSION
 
     with exit_on_error():
         before = format_of(library) if library.is_dir() else None
-        with tqdm(desc=f"converting {library.name}", unit="entry", disable=None) as bar:
-
-            def advance(done: int, total: int) -> None:
-                bar.total = total
-                bar.update(done - bar.n)
-
+        with _entries_bar(f"converting {library.name}") as advance:
             manifest = migrate_library(library, advance)
     if before == FORMAT_VERSION:
         done = f"already of format {FORMAT_VERSION}"
@@ -233,23 +228,31 @@ def redescribe(
     """Give a library the shortlisting descriptors of new retrieval encoders (over the same
     feature weights), from its own entries: no source file is read, no feature computed again.
     Safe to interrupt and run again."""
-    from tqdm import tqdm
-
     from catalign.library.redescribe import redescribe as redescribe_library
     from catalign.library.store import read_manifest
 
     with exit_on_error():
         extractor = _extractor(model_dir)
         before = read_manifest(library).fingerprint
-        with tqdm(desc=f"describing {library.name}", unit="entry", disable=None) as bar:
-
-            def advance(done: int, total: int) -> None:
-                bar.total = total
-                bar.update(done - bar.n)
-
+        with _entries_bar(f"describing {library.name}") as advance:
             manifest = redescribe_library(library, extractor, advance)
     done = "already described by" if before == manifest.fingerprint else "now described by"
     typer.echo(f"{library}: {len(manifest.entries)} models {done} {manifest.fingerprint}")
+
+
+@contextmanager
+def _entries_bar(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A progress bar over a library's entries, advanced by the (done, total) callback that
+    conversions and re-descriptions call after each entry."""
+    from tqdm import tqdm
+
+    with tqdm(desc=description, unit="entry", disable=None) as bar:
+
+        def advance(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        yield advance
 
 
 def _symmetric(manifest: Any) -> str:

@@ -27,7 +27,6 @@ from catalign.library.store import (
     commit_changes,
     read_entry,
     read_manifest,
-    sweep,
     utc_now,
     write_entry,
     writer_lock,
@@ -72,7 +71,6 @@ def redescribe(
             if progress is not None:
                 progress(done, len(old.entries))
         updated = utc_now()
-        # one transaction: every row and the fingerprint, then the old files go
+        # one transaction: every row and the fingerprint; then the old files and the mark go
         commit_changes(library_dir, put=records, fingerprint=extractor.fingerprint, updated=updated)
-        sweep(library_dir)
     return replace(old, fingerprint=extractor.fingerprint, updated=updated, entries=records)
