@@ -173,6 +173,17 @@ def pooled_extractor(model_dir: Path | None, cache: Path) -> LearnedExtractor:
     return LearnedExtractor(folder)
 
 
+def shared_cases(views: int, seed: int) -> tuple[dict, dict, dict, dict]:
+    """The shared chairs and tables by category, the cases (``views`` of each validation
+    shape) by category, and every shape's frame and symmetry."""
+    sources = {"chair": SharedChairs(None), "table": SharedTables(None)}
+    shared = {c: {i: s.metric(i) for i in s.ids()} for c, s in sources.items()}
+    observed = {c: {i: shared[c][i] for i in s.ids("val")} for c, s in sources.items()}
+    every = {i: s for group in shared.values() for i, s in group.items()}
+    cases = {c: build_cases(observed[c], views, seed) for c in sources}
+    return shared, cases, frames_of(every), symmetries_of(every)
+
+
 def measure(
     kind: str,
     folder: Path,
@@ -222,12 +233,7 @@ def main() -> None:
     args.cache.mkdir(parents=True, exist_ok=True)
 
     extractor = LearnedExtractor(args.model_dir)
-    sources = {"chair": SharedChairs(None), "table": SharedTables(None)}
-    shared = {c: {i: s.metric(i) for i in s.ids()} for c, s in sources.items()}
-    observed = {c: {i: shared[c][i] for i in s.ids("val")} for c, s in sources.items()}
-    every = {i: s for group in shared.values() for i, s in group.items()}
-    frames, symmetries = frames_of(every), symmetries_of(every)
-    cases = {c: build_cases(observed[c], args.views, args.seed) for c in sources}
+    shared, cases, frames, symmetries = shared_cases(args.views, args.seed)
 
     kinds = [("retrieval encoders", extractor)]
     if args.pooled is not None:

@@ -32,6 +32,7 @@ import os
 import re
 import runpy
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +56,7 @@ from catalign.errors import LibraryMismatchError
 from catalign.features.extractor import features_fingerprint
 from catalign.library import catalogue
 from catalign.library.loaded import load
+from catalign.library.shortlist_index import INDEX_DIR
 from catalign.library.sources import validate_category
 from catalign.library.store import commit_changes, read_manifest
 from catalign.registration.config import parse_options
@@ -980,7 +982,8 @@ def test_each_shard_writer_seeds_only_its_own_categories(
         expected = {i for i, r in everything.entries.items() if r.category in wanted}
         assert set(manifest.entries) == expected and expected
         assert manifest.category == (shard if shard != DEFAULT_SHARD else everything.category)
-        assert len(load(library, manifest.fingerprint)) == len(expected)
+        served = load(library, manifest.fingerprint)
+        assert len(served) == len(expected) == served.index.indexed  # the shard's own index
         for model_id in manifest.entries:
             assert seeded.setdefault(model_id, shard) == shard
     assert set(seeded) == set(everything.entries)
@@ -1020,10 +1023,14 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     shipped = read_manifest(ROOT / "model_store" / "library")
     assert "seeded" in run()
     assert read_manifest(volume).entries == shipped.entries
-    assert len(load(volume, shipped.fingerprint)) == len(shipped.entries)
+    seeded = load(volume, shipped.fingerprint)
+    assert len(seeded) == len(shipped.entries) == seeded.index.indexed  # with its index
     written = (volume / "catalogue.sqlite").read_bytes()
     assert "not seeding" in run()
     assert (volume / "catalogue.sqlite").read_bytes() == written
+    shutil.rmtree(volume / INDEX_DIR)  # seeded before the shortlist had an index
+    assert "not seeding" in run()
+    assert load(volume, shipped.fingerprint).index.indexed == len(shipped.entries)
     entries = {p.name: p.read_bytes() for p in (volume / "entries").iterdir()}
     as_format_2(volume)
     assert "converted from format 2 to format 4" in run()

@@ -34,15 +34,27 @@ def test_build_list_info_add_remove(tmp_path: Path) -> None:
 
     info = runner.invoke(app, ["library", "info", str(library)])
     assert "models: 2" in info.output and f"format: {FORMAT_VERSION}" in info.output
+    # the build indexed alpha; beta, added since, is scored exactly until the index is written
+    assert "shortlist index: 1 of 2 entries; 1 scored exactly until" in info.output
+
+    indexed = runner.invoke(app, ["library", "index", str(library)])
+    assert indexed.exit_code == 0, indexed.output
+    assert "shortlist index of 2 models (chair 2)" in indexed.output
+    info = runner.invoke(app, ["library", "info", str(library)])
+    assert "shortlist index: 2 of 2 entries\n" in info.output
 
     removed = runner.invoke(app, ["library", "remove", str(library), "alpha"])
     assert removed.exit_code == 0 and "1 models" in removed.output
+    info = runner.invoke(app, ["library", "info", str(library)])
+    assert "shortlist index: 1 of 1 entries\n" in info.output  # alpha's key is dropped
 
 
 def test_errors_are_one_sentence_and_exit_code_2(tmp_path: Path) -> None:
     missing = runner.invoke(app, ["library", "info", str(tmp_path / "nothing")])
     assert missing.exit_code == 2
     assert "no library" in missing.stderr and "Traceback" not in missing.output
+    not_one = runner.invoke(app, ["library", "index", str(tmp_path / "nothing")])
+    assert not_one.exit_code == 2 and "no library" in not_one.stderr
 
     library = tmp_path / "lib"
     runner.invoke(app, ["library", "procedural", "--out", str(library), "--count", "1"])

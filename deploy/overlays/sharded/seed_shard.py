@@ -5,7 +5,8 @@ A shard named for a category gets that category's entries, and entries added to 
 category become that category; the shard ``default`` gets every entry whose category has no
 shard of its own. A volume that already holds a library is left alone (one of an older format
 is converted in place). Entries are written first (temporary name,
-fsync, rename), the catalogue last, by the library's own commit.
+fsync, rename), the catalogue last, by the library's own commit; then the shard's shortlist
+index is written over its entries.
 
 Environment: ``SHARD`` (this shard's name, from the pod's ``catalign/shard`` label), ``SHARDS``
 (the categories that have a shard of their own, separated by spaces), ``CATALIGN_LIBRARY`` (the
@@ -21,6 +22,7 @@ from pathlib import Path
 
 from catalign.atomic import atomic_write_bytes
 from catalign.library.legacy import migrate
+from catalign.library.shortlist_index import write_index
 from catalign.library.store import (
     begin_write,
     commit,
@@ -65,6 +67,7 @@ def main() -> int:
             image, entries=entries, category=category, created=now, updated=now
         )
         commit(target, manifest)
+        write_index(target, entries)
     kept = f"{len(entries)} of the image's {len(image.entries)} models"
     print(f"seeded {target} with {kept} for shard {shard}")
     return 0

@@ -184,6 +184,7 @@ def list_command(library: Annotated[Path, typer.Argument(help="Library folder.")
 def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> None:
     """Print the catalogue's summary: format, extractor, dates, size."""
     from catalign.library.index import info as read_info
+    from catalign.library.shortlist_index import index_status
 
     with exit_on_error():
         manifest = read_info(library)
@@ -194,7 +195,31 @@ def info(library: Annotated[Path, typer.Argument(help="Library folder.")]) -> No
         f"models: {len(manifest.entries)}\n"
         f"categories: {_counts(manifest.categories()) or '(none)'} "
         f"(default {manifest.category})\nsymmetric about up: {_symmetric(manifest)}\n"
-        f"engine options: {_options(manifest.engine)}"
+        f"engine options: {_options(manifest.engine)}\n"
+        f"shortlist index: {index_status(library, manifest.entries)}"
+    )
+
+
+@app.command()
+def index(
+    library: Annotated[Path, typer.Argument(help="Library folder.")],
+    threads: Annotated[
+        int | None, typer.Option(min=1, help="Threads building the graphs (default: every core).")
+    ] = None,
+) -> None:
+    """Write the shortlist's index again over every entry: the entries added or described
+    again since it was written are found by an exact scan until then. Builds write it
+    themselves; readers take it up when they next load the library."""
+    from catalign.library.shortlist_index import write_index
+    from catalign.library.store import read_manifest
+
+    with exit_on_error():
+        entries = read_manifest(library).entries
+        with _entries_bar(f"indexing {library.name}") as advance:
+            written = write_index(library, entries, threads or 0, advance)
+    typer.echo(
+        f"{library}: shortlist index of {written.entries} models "
+        f"({_counts(written.categories) or 'none'}) in {written.seconds:.1f} s"
     )
 
 

@@ -28,6 +28,7 @@ from catalign.errors import (
 from catalign.library.builder import BuildJournal, Job, depends_on, describe_all
 from catalign.library.entry import SURFACE_POINTS, describe_file, describe_procedural
 from catalign.library.loaded import check_fingerprint
+from catalign.library.shortlist_index import write_index
 from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_factor
 from catalign.library.store import (
     EntryRecord,
@@ -289,6 +290,7 @@ def _build(
             library_dir, extractor, jobs, commit_all, progress, workers=workers, journal=journal
         )
         journal.done()
+        write_index(library_dir, manifest.entries, threads=workers)
     logger.info("wrote %d model(s) to %s", len(jobs), library_dir)
     return manifest
 

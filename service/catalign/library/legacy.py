@@ -43,6 +43,7 @@ from catalign.library.records import (
     rebuild_hint,
     typed,
 )
+from catalign.library.shortlist_index import write_index
 from catalign.library.sources import CATEGORY_PATTERN, DEFAULT_CATEGORY
 from catalign.library.store import (
     WRITING_NAME,
@@ -96,6 +97,7 @@ def migrate(
         catalogue.create(library_dir, converted)  # renamed over the old catalogue, if any
         clean_unreferenced(library_dir, {r.file for r in records.values()})
         (library_dir / WRITING_NAME).unlink(missing_ok=True)
+        write_index(library_dir, records)
     return converted
 
 

@@ -29,6 +29,7 @@ from catalign.errors import (
 )
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
+from catalign.library.shortlist_index import ShortlistIndex, read_index
 from catalign.library.store import (
     ENTRIES_DIR,
     EntryRecord,
@@ -59,7 +60,8 @@ class Library:
         model = library[library.ids[rows[0]]]  # LibraryEntry: points, keypoints, features, ...
 
     ``ids`` are sorted; ``descriptors`` (E,K) float32 (``unit_descriptors`` the same of unit
-    length), ``sizes`` (E,3) float64 and ``categories`` (E,) follow them. ``entries``, when
+    length), ``sizes`` (E,3) float64 and ``categories`` (E,) follow them. ``index`` is the
+    library's shortlist index (None when it has none, or for ``entries``). ``entries``, when
     given, are held in memory instead of read from ``path`` (a library made in a test).
     """
 
@@ -76,12 +78,14 @@ class Library:
         self.voxel_size = manifest.voxel_size
         self._stamp = stamp
         self._held = {e.model_id: e for e in entries or ()}
+        self.index: ShortlistIndex | None = None
         if entries is None:
             self.ids: list[str] = manifest.ids
             records = [manifest.entries[i] for i in self.ids]
             categories = [r.category for r in records]
             sizes = [r.size for r in records]
             vectors = [np.frombuffer(r.descriptor, dtype="<f4") for r in records]
+            self.index = read_index(path, self.ids, manifest.entries)
         else:
             self.ids = sorted(self._held)
             held = [self._held[i] for i in self.ids]

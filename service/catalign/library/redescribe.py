@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 from catalign.errors import LibraryMismatchError
 from catalign.library.records import Manifest, rebuild_hint
 from catalign.library.retrieval import model_descriptor
+from catalign.library.shortlist_index import write_index
 from catalign.library.store import (
     begin_write,
     commit_changes,
@@ -73,4 +74,5 @@ def redescribe(
         updated = utc_now()
         # one transaction: every row and the fingerprint; then the old files and the mark go
         commit_changes(library_dir, put=records, fingerprint=extractor.fingerprint, updated=updated)
+        write_index(library_dir, records)
     return replace(old, fingerprint=extractor.fingerprint, updated=updated, entries=records)

@@ -57,10 +57,11 @@ def retrieval_scores(
     query_size: np.ndarray | None,
     query_height: float | None = None,
     penalty_weight: float = 1.0,
+    entries: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Score of every entry, in ``library.ids`` order: cosine similarity minus size penalties
-    (times ``penalty_weight``: the descriptor's, see
-    :class:`~catalign.features.retrieval.RetrievalHead`).
+    """Score of every entry, in ``library.ids`` order (or of the rows ``entries``, in their
+    order): cosine similarity minus size penalties (times ``penalty_weight``: the descriptor's,
+    see :class:`~catalign.features.retrieval.RetrievalHead`).
 
     ``query_descriptor`` is one descriptor (K,), or several (V,K) of the same query (seen at
     several headings): then the scores are (V,E), one matrix product for all. ``query_size`` is
@@ -77,12 +78,15 @@ def retrieval_scores(
             f"{library.descriptors.shape[1]}; were they made by the same extractor?"
         )
     query = query / np.maximum(np.linalg.norm(query, axis=-1, keepdims=True), _EPS)
-    scores = (query @ library.unit_descriptors.T).astype(np.float64)
+    every = entries is None
+    descriptors = library.unit_descriptors if every else library.unit_descriptors[entries]
+    model_sizes = library.sizes if every else library.sizes[entries]
+    scores = (query @ descriptors.T).astype(np.float64)
     if query_size is not None:
         sizes = np.asarray(query_size, dtype=np.float64)
-        scores -= penalty_weight * size_penalty(sizes, library.sizes)
+        scores -= penalty_weight * size_penalty(sizes, model_sizes)
     if query_height is not None:
-        scores -= penalty_weight * height_penalty(query_height, library.sizes[:, 1])
+        scores -= penalty_weight * height_penalty(query_height, model_sizes[:, 1])
     return scores
 
 

@@ -65,6 +65,8 @@ def assemble(
         up_belief_power=config.verify.up_belief_power,
         heading_belief_power=config.verify.heading_belief_power,
         retrieval=extractor.retrieval,
+        index_from=config.shortlist.index_from,
+        index_candidates=config.shortlist.index_candidates,
     )
     fitter = CategoryFitter(library, refiner, extent_points=config.verify.coverage_points)
     finisher = Finisher(

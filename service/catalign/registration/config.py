@@ -1,9 +1,9 @@
 """The engine's configuration: one typed, frozen tree of every option of every stage.
 
 :class:`EngineConfig` gathers the option groups (:class:`~catalign.options.OptionGroup`), one
-per stage: ``engine.input``, ``engine.orient``, ``engine.floor``, ``engine.cleanup``,
-``engine.match``, ``engine.ransac``, ``engine.sweep``, ``engine.verify``, ``engine.icp`` and
-``engine.decision``, beside the two options every deployment sets, ``top_k`` and
+per stage: ``engine.input``, ``engine.shortlist``, ``engine.orient``, ``engine.floor``,
+``engine.cleanup``, ``engine.match``, ``engine.ransac``, ``engine.sweep``, ``engine.verify``,
+``engine.icp`` and ``engine.decision``, beside the two options every deployment sets, ``top_k`` and
 ``model_cache``. The clean-up stages declare their groups beside their code
 (:mod:`~catalign.registration.prepare.floor`, :mod:`~catalign.registration.prepare.detached`,
 :mod:`~catalign.registration.prepare.orient`) and take them whole; the others' are here, and
@@ -45,6 +45,17 @@ class InputOptions(OptionGroup):
     pass_voxels: int = Field(default=32_000, ge=1)
     """Query voxels, over all headings, that one forward pass may describe (bounds its
     memory)."""
+
+
+class ShortlistOptions(OptionGroup):
+    """The shortlist (``engine.shortlist``, :mod:`~catalign.registration.stages.shortlist`)."""
+
+    index_from: int | None = Field(default=5_000, ge=1)
+    """Searched entries (the request's category's, or the library's) from which the shortlist
+    scores only the index's nearest neighbours of the query and the unindexed entries, instead
+    of every entry (None: always every entry; a library without an index is always scanned)."""
+    index_candidates: int = Field(default=256, ge=1)
+    """Neighbours the index gives per heading the query is described at, scored exactly."""
 
 
 class MatchOptions(OptionGroup):
@@ -248,6 +259,8 @@ class EngineConfig(BaseModel):
     asked about; bounds a worker's memory on a large library)."""
     input: InputOptions = InputOptions()
     """What a query must hold and how it is fed to the network."""
+    shortlist: ShortlistOptions = ShortlistOptions()
+    """Which entries the shortlist scores."""
     orient: OrientOptions = OrientOptions()
     """Which ways up and which headings the query is searched at."""
     floor: FloorOptions = FloorOptions()

@@ -174,7 +174,7 @@ class Engine:
             frame = cloud.frame
             up = frame.direction(up)
         k = config.top_k if top_k is None else top_k
-        request = Request(k, estimate_scale, seed, clock, rows)
+        request = Request(k, estimate_scale, seed, clock, rows, category)
 
         # A query answered from one category is oriented by its own networks, where it has them.
         proposer = self.orientations.get(

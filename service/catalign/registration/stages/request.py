@@ -62,14 +62,15 @@ class RequestCache:
 @dataclass(frozen=True, eq=False)
 class Request:
     """One call's shortlist size ``k`` (None: every model), whether it estimates scale, its
-    seed, its clock, the library rows it may answer with (a category's; None: every model) and
-    its cache."""
+    seed, its clock, the library rows it may answer with and their ``category`` (None: every
+    model) and its cache."""
 
     k: int | None
     estimate_scale: bool
     seed: int
     clock: StageClock
     rows: np.ndarray | None = None
+    category: str | None = None
     cache: RequestCache = field(default_factory=RequestCache)
 
 

@@ -30,9 +30,10 @@ from catalign.registration.stages.verify import Scored, Verifier
 class Searcher:
     """The stages of one orientation's search over ``library`` (module docstring), with the
     options the engine's configuration names: ``heading_models`` (the best shortlisted models
-    the headings are chosen on), ``up_belief_power`` and ``heading_belief_power``; and the
-    extractor's ``retrieval`` encoders that describe the query for the shortlist (None: its
-    pooled features)."""
+    the headings are chosen on), ``up_belief_power``, ``heading_belief_power``,
+    ``index_from`` and ``index_candidates`` (when the shortlist reads the library's index);
+    and the extractor's ``retrieval`` encoders that describe the query for the shortlist
+    (None: its pooled features)."""
 
     library: Library
     matcher: Matcher
@@ -43,6 +44,8 @@ class Searcher:
     up_belief_power: float
     heading_belief_power: float
     retrieval: RetrievalHead | None = None
+    index_from: int | None = None
+    index_candidates: int = 256
 
     def search(self, search: Search, request: Request) -> tuple[Search, list[Scored]]:
         """The query searched under one orientation: the search with its shortlist and checks,
@@ -50,7 +53,15 @@ class Searcher:
         turn, seed, clock = search.turn, request.seed, request.clock
         with clock("shortlist"):
             candidates = shortlist(
-                self.library, search.views, request.k, turn, request.rows, self.retrieval
+                self.library,
+                search.views,
+                request.k,
+                turn,
+                request.rows,
+                self.retrieval,
+                request.category,
+                self.index_from,
+                self.index_candidates,
             )
 
         # Match: keep the headings the leading candidates agree with, match every candidate

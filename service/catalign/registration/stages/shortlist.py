@@ -8,6 +8,8 @@ keeps each model's best score, since only the right heading's features look like
 The order matters even when every model is kept: the first few also choose the headings. With
 the extractor's retrieval encoders, each heading's view is described by the view encoder, its
 key points turned into the canonical frame at that heading, as the features were computed.
+In a large library with an index (:mod:`catalign.library.shortlist_index`), only the index's
+nearest neighbours of each heading's descriptor and the entries it does not hold are scored.
 """
 
 from __future__ import annotations
@@ -20,6 +22,12 @@ from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
 
 
+def unit_rows(vectors: np.ndarray) -> np.ndarray:
+    """Descriptors (V,K) scaled to unit length, as the index holds them."""
+    norms = np.linalg.norm(vectors, axis=-1, keepdims=True)
+    return (vectors / np.maximum(norms, 1e-12)).astype(np.float32)
+
+
 def shortlist(
     library: Library,
     views: list[QueryView],
@@ -27,12 +35,19 @@ def shortlist(
     turn: np.ndarray | None,
     rows: np.ndarray | None = None,
     retrieval: RetrievalHead | None = None,
+    category: str | None = None,
+    index_from: int | None = None,
+    index_candidates: int = 256,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
     every model). ``views`` are the query at each heading; ``turn`` is the levelling turn when
     ``up`` is known (its second row is ``up`` in the observation frame), else None;
-    ``retrieval`` the encoders that describe the views (None: their pooled features)."""
+    ``retrieval`` the encoders that describe the views (None: their pooled features);
+    ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
+    models are searched (None: never) and the library has an index, only the index's
+    ``index_candidates`` nearest entries to each heading's descriptor and the unindexed ones
+    are scored."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -42,11 +57,20 @@ def shortlist(
     else:
         turned = [(v.canonical_keypoints, v.features) for v in views]
         descriptors, weight = retrieval.view_descriptors(turned), retrieval.penalty_weight
-    scores = retrieval_scores(library, descriptors, size, height, weight).max(axis=0)
-    candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
+    searched = len(library) if rows is None else int(np.count_nonzero(rows))
+    if library.index is not None and k is not None and searched >= (index_from or searched + 1):
+        candidates = library.index.candidates(unit_rows(descriptors), index_candidates, category)
+        if rows is not None:
+            candidates = candidates[rows[candidates]]
+        scores = retrieval_scores(library, descriptors, size, height, weight, candidates)
+        scores = scores.max(axis=0)
+    else:
+        scores = retrieval_scores(library, descriptors, size, height, weight).max(axis=0)
+        candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
+        scores = scores[candidates]
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
-        kth = -np.partition(-scores[candidates], count - 1)[count - 1]
-        candidates = candidates[scores[candidates] >= kth]
-    best = candidates[np.lexsort((candidates, -scores[candidates]))]
+        kth = -np.partition(-scores, count - 1)[count - 1]
+        candidates, scores = candidates[scores >= kth], scores[scores >= kth]
+    best = candidates[np.lexsort((candidates, -scores))]
     return [library.ids[i] for i in best[:count]]
