@@ -175,6 +175,7 @@ def test_info_describes_what_is_served(client: httpx.Client, server: Server) -> 
     info = client.get("/info").json()
     assert info["library"]["models"] == 3
     assert info["library"]["path"] == str(server.settings.library)
+    assert (info["library"]["indexed"], info["library"]["unindexed"]) == (3, 0)  # as built
     # the weights' sha256, then their retrieval encoders' when they have them
     assert info["library"]["fingerprint"].startswith(info["model_card"]["sha256"])
     assert info["headings"] in (1, 8) and info["voxel_size"] > 0

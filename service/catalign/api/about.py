@@ -39,6 +39,8 @@ def service_info(
             models=len(library),
             fingerprint=manifest.fingerprint,
             updated=manifest.updated,
+            indexed=0 if library.index is None else library.index.indexed,
+            unindexed=len(library) if library.index is None else library.index.unindexed,
             engine=manifest.engine,
         ),
         voxel_size=extractor.voxel_size,

@@ -46,6 +46,8 @@ logger = logging.getLogger(__name__)
 # Entries read from disk that a process keeps (about half a megabyte each, read back): more
 # than one request shortlists, fewer than a library of thousands holds.
 CACHED_ENTRIES = 128
+# Unindexed entries (beyond a tenth of the library) past which loading says to index again.
+STALE_INDEX_ENTRIES = 1_000
 _LOAD_ATTEMPTS = 5  # a writer may commit and delete files while a reader checks the entries
 
 
@@ -218,9 +220,25 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
             check_fingerprint(manifest, extractor_fingerprint, library_dir)
         if _files_present(library_dir, manifest, stamp):
             _check_descriptors(library_dir, manifest)
-            logger.info("loaded library %s: %d models", library_dir, len(manifest.entries))
-            return Library(library_dir, manifest, stamp=stamp)
+            library = Library(library_dir, manifest, stamp=stamp)
+            _log_loaded(library)
+            return library
     raise LibraryError(f"the library at {library_dir} kept changing while it was read; try again")
+
+
+def _log_loaded(library: Library) -> None:
+    """Say what was loaded, and when many entries wait for the index to be written again."""
+    index = library.index
+    indexed = "no shortlist index" if index is None else f"{index.indexed} in its index"
+    logger.info("loaded library %s: %d models, %s", library.path, len(library), indexed)
+    if index is not None and index.unindexed > max(STALE_INDEX_ENTRIES, len(library) // 10):
+        logger.warning(
+            "%d entries of %s were added or changed since its shortlist index was written and "
+            "are scored one by one; write it again with `catalign library index %s`",
+            index.unindexed,
+            library.path,
+            library.path,
+        )
 
 
 def check_fingerprint(manifest: Manifest, fingerprint: str, library_dir: Path) -> None:
