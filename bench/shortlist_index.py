@@ -13,7 +13,7 @@ descriptors (copies repeat descriptors): build seconds, size, recall of the exac
 nearest, microseconds a query.
 
     .venv/bin/python bench/shortlist_index.py [--distractors 1000 10000] [--copies 100000]
-        [--graphs] [--views 2] [--seed 0] [--cache /tmp/catalign-retrieval]
+        [--graphs] [--candidates 256] [--views 2] [--seed 0] [--cache /tmp/catalign-retrieval]
         [--out bench/results/shortlist_index.md]
 """
 
@@ -63,15 +63,19 @@ class FirstShortlists:
 MODES = ("exact", "index")
 
 
-def measure(folder: Path, extractor, cases: dict, frames, symmetries, seed: int) -> list[tuple]:
-    """Every case registered by the exact scan and by the index; a row per category."""
+def measure(
+    folder: Path, extractor, cases: dict, frames, symmetries, seed: int, candidates: int
+) -> list[tuple]:
+    """Every case registered by the exact scan and by the index (``candidates`` neighbours a
+    heading); a row per category."""
     written = write_index(folder, read_manifest(folder).entries)
     size_mb = sum(p.stat().st_size for p in (folder / INDEX_DIR).iterdir()) / 1e6
     library = load(folder, None)
     exact_only = EngineConfig().replaced(shortlist={"index_from": None})
+    through = EngineConfig().replaced(shortlist={"index_candidates": candidates})
     engines = {
         "exact": Engine(extractor, library, config=exact_only),
-        "index": Engine(extractor, library),
+        "index": Engine(extractor, library, config=through),
     }
     recorder = FirstShortlists()
     rows = []
@@ -243,6 +247,8 @@ def main() -> None:
     parser.add_argument("--distractors", type=int, nargs="+", default=[1000, 10000])
     parser.add_argument("--copies", type=int, default=None)
     parser.add_argument("--graphs", action="store_true")
+    default = EngineConfig().shortlist.index_candidates
+    parser.add_argument("--candidates", type=int, default=default, help="neighbours a heading")
     parser.add_argument("--views", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
@@ -257,15 +263,16 @@ def main() -> None:
         folders.append(with_copies(folders[-1], args.copies, args.threads))
     rows = []
     for folder in folders:
-        rows += measure(folder, extractor, cases, frames, symmetries, args.seed)
+        rows += measure(folder, extractor, cases, frames, symmetries, args.seed, args.candidates)
     lines = [
         "# The shortlist's index against the exact scan",
         "",
         f"The retrieval bench's libraries; {args.views} view(s) of each validation shape, seed "
         f"{args.seed}, `up` given, category sent; {args.threads} threads, load average "
-        f"{load_average():.2f}. Same shortlist: the index's first shortlist of a query is the "
-        "exact scan's, ids and order. Top-1 and right (10 degrees, 5 cm) as in the retrieval "
-        "bench, exact → index; times are medians, exact → index.",
+        f"{load_average():.2f}; the index's {args.candidates} nearest entries a heading. Same "
+        "shortlist: the index's first shortlist of a query is the exact scan's, ids and order. "
+        "Top-1 and right (10 degrees, 5 cm) as in the retrieval bench, exact → index; times "
+        "are medians, exact → index.",
         "",
         "| models | of the category | observed | views | index written s | index MB | "
         "same shortlist % | top-1 % | right % | shortlist ms | query s |",

@@ -101,6 +101,10 @@ class Library:
         self.categories = np.array(categories, dtype=object)
         names, counts = np.unique(self.categories.astype(str), return_counts=True)
         self._counts = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
+        # each category's rows, found once: a query naming one reads its mask
+        self._masks = {str(n): self.categories == n for n in names}
+        for mask in self._masks.values():
+            mask.flags.writeable = False
         self._only_category = str(names[0]) if len(names) == 1 else ""
         # Unit-length descriptors, so that a query's cosine with every entry is one product.
         norms = np.linalg.norm(self.descriptors, axis=1, keepdims=True)
@@ -127,8 +131,8 @@ class Library:
         library's."""
         if category is None:
             return None
-        rows = self.categories == category
-        if not rows.any():
+        rows = self._masks.get(category)
+        if rows is None:
             held = ", ".join(f"{n} ({c})" for n, c in self.category_counts().items())
             raise InvalidInputError(
                 f"no model of category {category!r} in the library; it holds {held or 'no models'}"

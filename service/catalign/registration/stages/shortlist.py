@@ -65,9 +65,10 @@ def shortlist(
         scores = retrieval_scores(library, descriptors, size, height, weight, candidates)
         scores = scores.max(axis=0)
     else:
-        scores = retrieval_scores(library, descriptors, size, height, weight).max(axis=0)
-        candidates = np.arange(len(scores)) if rows is None else np.flatnonzero(rows)
-        scores = scores[candidates]
+        candidates = np.arange(len(library)) if rows is None else np.flatnonzero(rows)
+        scored = None if rows is None else candidates  # only the category's rows are scored
+        scores = retrieval_scores(library, descriptors, size, height, weight, scored)
+        scores = scores.max(axis=0)
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
         kth = -np.partition(-scores, count - 1)[count - 1]
