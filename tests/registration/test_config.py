@@ -19,7 +19,7 @@ DEFAULTS = {
     "top_k": 10,
     "model_cache": 256,
     "input": {"min_points": 50, "fine_cells": 4, "pass_voxels": 32000},
-    "shortlist": {"index_from": 5000, "index_candidates": 256},
+    "shortlist": {"index_from": 5000, "index_candidates": 1024},
     "orient": {
         "headings": None,
         "up_proposals": 3,

@@ -54,7 +54,7 @@ class ShortlistOptions(OptionGroup):
     """Searched entries (the request's category's, or the library's) from which the shortlist
     scores only the index's nearest neighbours of the query and the unindexed entries, instead
     of every entry (None: always every entry; a library without an index is always scanned)."""
-    index_candidates: int = Field(default=256, ge=1)
+    index_candidates: int = Field(default=1_024, ge=1)
     """Neighbours the index gives per heading the query is described at, scored exactly."""
 
 

@@ -43,9 +43,9 @@ class Searcher:
     heading_models: int
     up_belief_power: float
     heading_belief_power: float
+    index_from: int | None
+    index_candidates: int
     retrieval: RetrievalHead | None = None
-    index_from: int | None = None
-    index_candidates: int = 256
 
     def search(self, search: Search, request: Request) -> tuple[Search, list[Scored]]:
         """The query searched under one orientation: the search with its shortlist and checks,

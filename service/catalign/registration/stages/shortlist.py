@@ -37,7 +37,7 @@ def shortlist(
     retrieval: RetrievalHead | None = None,
     category: str | None = None,
     index_from: int | None = None,
-    index_candidates: int = 256,
+    index_candidates: int | None = None,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
@@ -45,9 +45,9 @@ def shortlist(
     ``up`` is known (its second row is ``up`` in the observation frame), else None;
     ``retrieval`` the encoders that describe the views (None: their pooled features);
     ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
-    models are searched (None: never) and the library has an index, only the index's
-    ``index_candidates`` nearest entries to each heading's descriptor and the unindexed ones
-    are scored."""
+    models are searched and the library has an index, only the index's ``index_candidates``
+    nearest entries to each heading's descriptor and the unindexed ones are scored (either
+    None: every model is)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -58,8 +58,9 @@ def shortlist(
         turned = [(v.canonical_keypoints, v.features) for v in views]
         descriptors, weight = retrieval.view_descriptors(turned), retrieval.penalty_weight
     searched = len(library) if rows is None else int(np.count_nonzero(rows))
-    if library.index is not None and k is not None and searched >= (index_from or searched + 1):
-        candidates = library.index.candidates(unit_rows(descriptors), index_candidates, category)
+    index = library.index
+    if index is not None and k and index_candidates and searched >= (index_from or searched + 1):
+        candidates = index.candidates(unit_rows(descriptors), index_candidates, category)
         if rows is not None:
             candidates = candidates[rows[candidates]]
         scores = retrieval_scores(library, descriptors, size, height, weight, candidates)
