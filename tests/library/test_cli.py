@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
-from catalign.library.store import FORMAT_VERSION
+from catalign.library.store import FORMAT_VERSION, manifest_stamp
 from tests.library.conftest import as_format_2, stored, write_format_2
 
 runner = CliRunner()
@@ -37,8 +37,10 @@ def test_build_list_info_add_remove(tmp_path: Path) -> None:
     # the build indexed alpha; beta, added since, is scored exactly until the index is written
     assert "shortlist index: 1 of 2 entries; 1 scored exactly until" in info.output
 
+    before = manifest_stamp(library)
     indexed = runner.invoke(app, ["library", "index", str(library)])
     assert indexed.exit_code == 0, indexed.output
+    assert manifest_stamp(library) != before  # serving processes load it again, indexed
     assert "shortlist index of 2 models (chair 2)" in indexed.output
     info = runner.invoke(app, ["library", "info", str(library)])
     assert "shortlist index: 2 of 2 entries\n" in info.output

@@ -209,14 +209,11 @@ def index(
 ) -> None:
     """Write the shortlist's index again over every entry: the entries added or described
     again since it was written are found by an exact scan until then. Builds write it
-    themselves; readers take it up when they next load the library."""
-    from catalign.library.shortlist_index import write_index
-    from catalign.library.store import read_manifest
+    themselves; serving processes load the library again with it."""
+    from catalign.library.index import reindex
 
-    with exit_on_error():
-        entries = read_manifest(library).entries
-        with _entries_bar(f"indexing {library.name}") as advance:
-            written = write_index(library, entries, threads or 0, advance)
+    with exit_on_error(), _entries_bar(f"indexing {library.name}") as advance:
+        written = reindex(library, threads or 0, advance)
     typer.echo(
         f"{library}: shortlist index of {written.entries} models "
         f"({_counts(written.categories) or 'none'}) in {written.seconds:.1f} s"

@@ -94,10 +94,10 @@ def migrate(
         converted = Manifest(old.fingerprint, old.voxel_size, old.created, old.updated,
                              records, FORMAT_VERSION, old.engine, old.category)  # fmt: skip
         fsync_entries(library_dir)
+        write_index(library_dir, records)
         catalogue.create(library_dir, converted)  # renamed over the old catalogue, if any
         clean_unreferenced(library_dir, {r.file for r in records.values()})
         (library_dir / WRITING_NAME).unlink(missing_ok=True)
-        write_index(library_dir, records)
     return converted
 
 

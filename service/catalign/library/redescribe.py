@@ -73,6 +73,6 @@ def redescribe(
                 progress(done, len(old.entries))
         updated = utc_now()
         # one transaction: every row and the fingerprint; then the old files and the mark go
+        write_index(library_dir, records)  # first: until the commit its keys match no record
         commit_changes(library_dir, put=records, fingerprint=extractor.fingerprint, updated=updated)
-        write_index(library_dir, records)
     return replace(old, fingerprint=extractor.fingerprint, updated=updated, entries=records)
