@@ -350,16 +350,8 @@ class LibraryInfo(BaseModel):
     models: int
     fingerprint: str
     updated: str
-    indexed: int = Field(
-        0,
-        description="Models the shortlist's nearest-neighbour index holds (0: the library has "
-        "none; `catalign library index` writes it).",
-    )
-    unindexed: int = Field(
-        0,
-        description="Models added or described again since the index was written, scored one "
-        "by one until it is written again.",
-    )
+    indexed: int = Field(0, description="Models the shortlist's index holds (library index).")
+    unindexed: int = Field(0, description="Models added or changed since, scored one by one.")
     engine: dict[str, JsonData] = Field(
         default_factory=dict,
         description="Engine options the library's catalogue sets (`catalign library configure`); "
