@@ -12,7 +12,12 @@ from pathlib import Path
 
 def fsync_directory(directory: Path) -> None:
     """Make a rename or unlink in ``directory`` durable."""
-    fd = os.open(directory, os.O_RDONLY)
+    fsync_file(directory)
+
+
+def fsync_file(path: Path) -> None:
+    """Make what was written to ``path`` durable (a file another library wrote and closed)."""
+    fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:

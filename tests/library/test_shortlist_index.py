@@ -151,5 +151,13 @@ def test_a_damaged_index_is_ignored_with_a_warning(tmp_path: Path, caplog, damag
     assert "ignoring the shortlist index" in caplog.text
 
 
+def test_entries_without_descriptors_are_left_to_the_exact_scan(tmp_path: Path) -> None:
+    records = records_of(clustered(20, seed=6))
+    records["bare"] = dataclasses.replace(records["m00000"], category="sofa", descriptor=b"")
+    assert write_index(tmp_path, records).categories == {"chair": 20}
+    index = read_index(tmp_path, sorted(records), records)
+    assert (index.indexed, index.unindexed) == (20, 1)
+
+
 def test_a_library_without_an_index_has_none(tmp_path: Path) -> None:
     assert read_index(tmp_path, [], {}) is None

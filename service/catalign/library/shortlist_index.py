@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from catalign.atomic import atomic_write_bytes, fsync_directory
+from catalign.atomic import atomic_write_bytes, fsync_directory, fsync_file
 from catalign.library.records import EntryRecord
 
 if TYPE_CHECKING:  # imported where an index is read or written: 0.15 s a process otherwise
@@ -86,6 +86,8 @@ def write_index(
     listed = {}
     for category, ids in sorted(by_category.items()):
         vectors = unit_rows([records[i].descriptor for i in ids])
+        if vectors.shape[1] == 0:  # entries without descriptors: the exact scan serves them
+            continue
         graph = Index(
             ndim=vectors.shape[1],
             metric="ip",
@@ -96,6 +98,7 @@ def write_index(
         graph.add(np.arange(len(ids), dtype=np.uint64), vectors, threads=threads)
         name = f"{category}-{secrets.token_hex(6)}.usearch"
         graph.save(str(folder / name))
+        fsync_file(folder / name)  # whole on disk before index.json names it
         listed[category] = {
             "file": name,
             "ids": ids,
@@ -111,9 +114,8 @@ def write_index(
     for path in folder.iterdir():  # the index this one replaced, and any half-written one
         if path.name not in kept and path.is_file():
             path.unlink(missing_ok=True)
-    return IndexSummary(
-        {c: len(ids) for c, ids in sorted(by_category.items())}, time.perf_counter() - started
-    )
+    indexed = {c: len(item["ids"]) for c, item in listed.items()}
+    return IndexSummary(indexed, time.perf_counter() - started)
 
 
 def index_status(library_dir: Path, records: dict[str, EntryRecord]) -> str:
