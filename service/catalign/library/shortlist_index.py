@@ -161,16 +161,18 @@ class ShortlistIndex:
     def candidates(
         self, queries: np.ndarray, count: int, category: str | None = None
     ) -> np.ndarray:
-        """Rows (sorted, unique) of the ``count`` entries nearest each query (V,K) of unit
-        length, by the graph of ``category`` (None: of every category), and every unindexed
-        row in that scope."""
+        """Rows (sorted, unique) of the ``count`` entries nearest each query descriptor (V,K),
+        by cosine, in the graph of ``category`` (None: of every category), and every
+        unindexed row in that scope."""
         scope = (
             [category]
             if category is not None
             else sorted(self._graphs.keys() | self._unindexed.keys())
         )
         found = []
-        queries = np.ascontiguousarray(queries, dtype=np.float32).reshape(-1, queries.shape[-1])
+        queries = np.asarray(queries, dtype=np.float32).reshape(-1, np.shape(queries)[-1])
+        norms = np.linalg.norm(queries, axis=1, keepdims=True)  # the graphs hold unit rows
+        queries = np.ascontiguousarray(queries / np.maximum(norms, 1e-12), dtype=np.float32)
         for name in scope:
             if name in self._graphs:
                 graph, rows = self._graphs[name]

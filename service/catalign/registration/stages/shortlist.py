@@ -22,12 +22,6 @@ from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
 
 
-def unit_rows(vectors: np.ndarray) -> np.ndarray:
-    """Descriptors (V,K) scaled to unit length, as the index holds them."""
-    norms = np.linalg.norm(vectors, axis=-1, keepdims=True)
-    return (vectors / np.maximum(norms, 1e-12)).astype(np.float32)
-
-
 def shortlist(
     library: Library,
     views: list[QueryView],
@@ -59,17 +53,21 @@ def shortlist(
         descriptors, weight = retrieval.view_descriptors(turned), retrieval.penalty_weight
     searched = len(library) if rows is None else int(np.count_nonzero(rows))
     index = library.index
-    if index is not None and k and index_candidates and searched >= (index_from or searched + 1):
-        candidates = index.candidates(unit_rows(descriptors), index_candidates, category)
+    if (
+        index is not None
+        and k is not None
+        and index_candidates is not None
+        and index_from is not None
+        and searched >= index_from
+    ):
+        candidates = index.candidates(descriptors, index_candidates, category)
         if rows is not None:
             candidates = candidates[rows[candidates]]
-        scores = retrieval_scores(library, descriptors, size, height, weight, candidates)
-        scores = scores.max(axis=0)
+        scored = candidates
     else:
         candidates = np.arange(len(library)) if rows is None else np.flatnonzero(rows)
         scored = None if rows is None else candidates  # only the category's rows are scored
-        scores = retrieval_scores(library, descriptors, size, height, weight, scored)
-        scores = scores.max(axis=0)
+    scores = retrieval_scores(library, descriptors, size, height, weight, scored).max(axis=0)
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
         kth = -np.partition(-scores, count - 1)[count - 1]
