@@ -17,7 +17,11 @@ import trimesh
 
 from catalign.features.extractor import Described
 from catalign.geometry.sampling import voxel_downsample
+from catalign.library.entry import LibraryEntry
+from catalign.library.entry_codec import entry_bytes
 from catalign.library.loaded import load
+from catalign.library.npz import npz_arrays
+from catalign.library.quantise import point_steps
 from catalign.library.records import EntryRecord, entry_file_name
 from catalign.library.store import read_manifest
 
@@ -147,6 +151,37 @@ def as_format_3(library_dir: Path) -> None:
             "UPDATE entries SET file = ?, sha256 = ? WHERE model_id = ?",
             [(r.file, r.sha256, i) for i, r in records.items()],
         )
+
+
+def earlier_layout_bytes(entry: LibraryEntry) -> bytes:
+    """``entry``'s file in the entry layout before the current one: the surface's steps as rows
+    in sampling order, float32 key points, the grid's 255 levels, deflated members."""
+    arrays = npz_arrays(entry_bytes(entry))
+    for name in ("surface_steps", "keypoint_steps", "grid_steps"):
+        del arrays[name]
+    shuffled = np.random.default_rng(0).permutation(len(entry.points))
+    arrays["point_steps"] = point_steps(entry.points[shuffled], entry.bbox_min, entry.bbox_max)
+    arrays["keypoints"] = entry.keypoints.astype(np.float32)
+    arrays["grid"] = np.asarray(entry.grid.values)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def as_earlier_layout(library_dir: Path) -> None:
+    """Rewrite every entry file of a library of the current format in the earlier entry
+    layout (:func:`earlier_layout_bytes`), and point its row at it."""
+    manifest, library = read_manifest(library_dir), load(library_dir, None)
+    rows = []
+    for model_id, record in manifest.entries.items():
+        data = earlier_layout_bytes(library[model_id])
+        sha256 = hashlib.sha256(data).hexdigest()
+        file = entry_file_name(model_id, sha256)
+        (library_dir / record.file).unlink()
+        (library_dir / file).write_bytes(data)
+        rows.append((file, sha256, model_id))
+    with closing(sqlite3.connect(library_dir / "catalogue.sqlite")) as connection, connection:
+        connection.executemany("UPDATE entries SET file = ?, sha256 = ? WHERE model_id = ?", rows)
 
 
 def _without_descriptor(record: dict[str, Any]) -> dict[str, Any]:

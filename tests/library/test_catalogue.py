@@ -34,7 +34,13 @@ from catalign.library.index import configure
 from catalign.library.legacy import migrate
 from catalign.library.records import EntryRecord, Manifest, entry_file_name
 from catalign.library.store import commit, commit_changes, manifest_stamp, read_manifest
-from tests.library.conftest import as_format_2, as_format_3, stored, write_format_2
+from tests.library.conftest import (
+    as_earlier_layout,
+    as_format_2,
+    as_format_3,
+    stored,
+    write_format_2,
+)
 
 
 @pytest.fixture
@@ -318,6 +324,25 @@ def test_a_library_of_format_3_is_converted_to_small_entries(library, extractor)
     assert everything(library / "entries") == entries  # the same bytes as a fresh build
     assert sum(len(data) for data in entries.values()) < full * 0.7
     assert load(library, extractor.fingerprint).ids == ["a", "b"]
+
+
+def test_entries_of_the_earlier_layout_are_served_then_rewritten(library, extractor) -> None:
+    records, entries = info(library).entries, everything(library / "entries")
+    fresh = load(library, extractor.fingerprint)["a"]
+    as_earlier_layout(library)
+    larger = sum(len(data) for data in everything(library / "entries").values())
+    served = load(library, extractor.fingerprint)["a"]  # read as it is, no migration asked
+    sixteen_bits = (fresh.bbox_max - fresh.bbox_min) / 65_535  # the earlier layout's steps
+    gaps = np.abs(np.sort(served.points, axis=0) - np.sort(fresh.points, axis=0))
+    assert (gaps < sixteen_bits).all()
+    stamp = manifest_stamp(library)
+    assert migrate(library).entries == records  # the same records, descriptors included
+    assert everything(library / "entries") == entries  # the same bytes as a fresh build
+    assert sum(len(data) for data in entries.values()) < larger
+    rewritten = manifest_stamp(library)
+    assert rewritten != stamp  # serving processes load the rewritten files
+    assert migrate(library).entries == records  # again: nothing left to do, nothing committed
+    assert manifest_stamp(library) == rewritten
 
 
 def test_a_conversion_killed_before_or_after_its_rename_is_whole(library, extractor) -> None:

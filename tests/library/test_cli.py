@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
 from catalign.library.store import FORMAT_VERSION, manifest_stamp
-from tests.library.conftest import as_format_2, stored, write_format_2
+from tests.library.conftest import as_earlier_layout, as_format_2, stored, write_format_2
 
 runner = CliRunner()
 
@@ -130,7 +130,12 @@ def test_a_library_of_the_older_format_is_refused_until_migrated(tmp_path: Path)
     assert not (library / "manifest.json").exists()
     assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
     again = runner.invoke(app, ["library", "migrate", str(library)])
-    assert again.exit_code == 0 and "already of format 4" in again.output
+    assert again.exit_code == 0 and "already of format 4, 2 models" in again.output
+    as_earlier_layout(library)  # entry files of the layout before, in a library of format 4
+    compacted = runner.invoke(app, ["library", "migrate", str(library)])
+    assert compacted.exit_code == 0, compacted.output
+    assert "2 entries of the earlier layout rewritten" in compacted.output
+    assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
     info = runner.invoke(app, ["library", "info", str(library)])
     assert info.exit_code == 0 and "engine options: (the defaults)" in info.output
     assert "models: 2" in info.output

@@ -1,5 +1,5 @@
-"""Entry archives: deflated, byte-reproducible, checked against ``np.load`` (the reference
-reader of the format) and ``zipfile``."""
+"""Entry archives: members LZMA-compressed or deflated, byte-reproducible, checked against
+``np.load`` (the reference reader of the format) and ``zipfile``."""
 
 from __future__ import annotations
 
@@ -25,16 +25,17 @@ def arrays() -> dict[str, np.ndarray]:
     }
 
 
-def test_written_archives_are_plain_deflated_npz(arrays):
-    data = npz_bytes(arrays)
-    assert data == npz_bytes(arrays)  # byte-reproducible: the same content address
+def test_written_archives_are_plain_npz_with_the_large_members_in_lzma(arrays):
+    data = npz_bytes(arrays, large=("grid", "point_steps"))
+    assert data == npz_bytes(arrays, large=("grid", "point_steps"))  # the same content address
     with np.load(io.BytesIO(data), allow_pickle=False) as reference:
         assert sorted(reference.files) == sorted(arrays)
         for name, array in arrays.items():
             np.testing.assert_array_equal(reference[name], array)
     with zipfile.ZipFile(io.BytesIO(data)) as archive:
-        members = archive.infolist()
-        assert {m.compress_type for m in members} == {zipfile.ZIP_DEFLATED}
+        methods = {m.filename: m.compress_type for m in archive.infolist()}
+        assert methods.pop("grid.npy") == methods.pop("point_steps.npy") == zipfile.ZIP_LZMA
+        assert set(methods.values()) == {zipfile.ZIP_DEFLATED}
         grid = archive.getinfo("grid.npy")
         assert grid.compress_size < grid.file_size / 50  # a uniform grid all but vanishes
 
@@ -57,10 +58,19 @@ def test_an_archive_of_python_objects_is_refused():
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped"])
 def test_a_damaged_archive_is_refused(arrays, damage):
-    data = bytearray(npz_bytes(arrays))
+    data = bytearray(npz_bytes(arrays, large=("grid", "point_steps")))
     if damage == "truncated":
         data = data[: len(data) // 2]
-    else:  # inside the deflated grid member: its stream or its CRC no longer holds
+    else:  # inside the LZMA member of random steps: its stream or its CRC no longer holds
         data[len(data) // 2] ^= 0xFF
     with pytest.raises((ValueError, OSError, EOFError, zipfile.BadZipFile)):
         npz_arrays(bytes(data))
+
+
+def test_archives_of_deflated_members_are_still_read(arrays):
+    """Entries written before members were LZMA-compressed were deflated: they read as ever."""
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    read = npz_arrays(buffer.getvalue())
+    for name, array in arrays.items():
+        np.testing.assert_array_equal(read[name], array)

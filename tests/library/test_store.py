@@ -27,7 +27,9 @@ from catalign.errors import (
 from catalign.library import add, build, info, load, remove
 from catalign.library.entry import describe_file
 from catalign.library.npz import npz_arrays
+from catalign.library.quantise import GRID_STEPS
 from catalign.library.sources import SourceFile
+from tests.library.conftest import earlier_layout_bytes
 
 
 class Crash(BaseException):
@@ -54,10 +56,27 @@ def test_entry_files_are_byte_reproducible_and_read_back_equal(files, extractor)
     assert store.entry_bytes(entry) == store.entry_bytes(entry)
     with np.load(io.BytesIO(store.entry_bytes(entry)), allow_pickle=False) as npz:
         assert str(npz["model_id"]) == "a"
-        assert npz["point_steps"].dtype == np.uint16 and npz["feature_steps"].dtype == np.int8
+        assert npz["surface_steps"].dtype == np.uint16 and npz["surface_steps"].shape[0] == 3
+        assert npz["keypoint_steps"].dtype == np.uint16 and npz["feature_steps"].dtype == np.int8
+        assert npz["grid_steps"].max() <= GRID_STEPS
     back = store.entry_from_arrays(npz_arrays(store.entry_bytes(entry)))
     for name in ("points", "keypoints", "features", "descriptor", "bbox_min", "size"):
         np.testing.assert_array_equal(getattr(back, name), getattr(entry, name), err_msg=name)
+    np.testing.assert_array_equal(back.grid.values, entry.grid.values)
+
+
+def test_an_entry_file_of_the_earlier_layout_reads_as_it_was_written(files, extractor):
+    """Entries written before the surface, key points and grid were narrowed further (rows of
+    point steps, float32 key points, 255 grid levels, deflated) are served without a rewrite."""
+    entry = describe_file(SourceFile("a", files.cloud("a.npy", 1)), extractor)
+    back = store.entry_from_arrays(npz_arrays(earlier_layout_bytes(entry)))
+    sixteen_bits = (entry.bbox_max - entry.bbox_min) / 65_535  # the earlier layout's steps
+    assert (
+        np.abs(np.sort(back.points, axis=0) - np.sort(entry.points, axis=0)) < sixteen_bits
+    ).all()
+    for name in ("features", "descriptor"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(entry, name), err_msg=name)
+    np.testing.assert_allclose(back.keypoints, entry.keypoints, atol=1e-6)
     np.testing.assert_array_equal(back.grid.values, entry.grid.values)
 
 
@@ -302,7 +321,7 @@ def test_an_entry_without_a_grid_is_corrupt(small_library, extractor):
     record = info(small_library).entries["a"]
     path = small_library / record.file
     with np.load(path, allow_pickle=False) as npz:
-        arrays = {name: npz[name] for name in npz.files if name != "grid"}
+        arrays = {name: npz[name] for name in npz.files if name not in ("grid", "grid_steps")}
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     _replace_entry(small_library, "a", buffer.getvalue())

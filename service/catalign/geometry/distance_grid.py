@@ -57,6 +57,11 @@ class DistanceGrid:
         """The largest distance the grid tells apart from "far"."""
         return LEVELS * self.step
 
+    @property
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The first and the last cell centre: the box the grid's distances are known in."""
+        return self.origin, self.origin + self.cell * (np.array(self.values.shape) - 1)
+
     @classmethod
     def around(
         cls,

@@ -226,17 +226,25 @@ def migrate(
 ) -> None:
     """Convert a library of an older format (2: manifest.json, 3: catalogue.sqlite with full
     entries) in place: every entry rewritten small, no features computed again (no weights
-    needed), a new catalogue.sqlite. Safe to interrupt and run again."""
+    needed), a new catalogue.sqlite. In a library of the current format, rewrite the entries
+    of the earlier, larger layout. Safe to interrupt and run again."""
     from catalign.library.legacy import format_of
     from catalign.library.legacy import migrate as migrate_library
     from catalign.library.records import FORMAT_VERSION
+    from catalign.library.store import read_manifest
 
     with exit_on_error():
         before = format_of(library) if library.is_dir() else None
+        files = None
+        if before == FORMAT_VERSION:
+            files = {i: r.file for i, r in read_manifest(library).entries.items()}
         with _entries_bar(f"converting {library.name}") as advance:
             manifest = migrate_library(library, advance)
-    if before == FORMAT_VERSION:
+    if files is not None:
+        rewritten = sum(files.get(i) != r.file for i, r in manifest.entries.items())
         done = f"already of format {FORMAT_VERSION}"
+        if rewritten:
+            done += f", {rewritten} entries of the earlier layout rewritten"
     else:
         done = f"converted from format {before} to format {FORMAT_VERSION}"
     typer.echo(f"{library}: {done}, {len(manifest.entries)} models")

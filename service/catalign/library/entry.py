@@ -8,11 +8,12 @@ against an entry maps *source coordinates converted to metres* into the observat
 points are narrowed to what their file keeps (:mod:`~catalign.library.quantise`) before
 anything is computed from them. The extractor then gives key points and features,
 and :class:`~catalign.geometry.distance_grid.DistanceGrid` the surface's truncated distance
-field that verification reads instead of searching the points; the entry keeps the
-:data:`~catalign.library.quantise.STORED_KEYPOINTS` key points matching reads, their features
-narrowed to 8 bits, and :func:`~catalign.library.retrieval.model_descriptor` the vector used for
-shortlisting, from exactly those (so that new retrieval encoders can describe a built library
-again from its entries: :mod:`~catalign.library.redescribe`).
+field that verification reads instead of searching the points (its levels narrowed to six
+bits); the entry keeps the :data:`~catalign.library.quantise.STORED_KEYPOINTS` key points
+matching reads (narrowed to 16-bit steps), their features narrowed to 8 bits, and
+:func:`~catalign.library.retrieval.model_descriptor` the vector used for shortlisting, from
+exactly those (so that new retrieval encoders can describe a built library again from its
+entries: :mod:`~catalign.library.redescribe`).
 """
 
 from __future__ import annotations
@@ -32,8 +33,11 @@ from catalign.geometry.symmetry import NO_SYMMETRY, YawSymmetry, find_yaw_symmet
 from catalign.library.quantise import (
     STORED_KEYPOINTS,
     narrowed_features,
+    narrowed_grid,
+    narrowed_keypoints,
     narrowed_points,
     stored_rows,
+    stored_surface,
 )
 from catalign.library.retrieval import model_descriptor
 from catalign.library.sources import DEFAULT_CATEGORY, SourceFile, unit_factor
@@ -172,9 +176,6 @@ def describe_shape(
             f"({len(points)} points, voxel size {extractor.voxel_size:g} m); "
             "is the declared unit right?"
         )
-    kept = stored_rows(len(described.keypoints), STORED_KEYPOINTS)
-    keypoints = described.keypoints[kept].astype(np.float32).astype(np.float64)
-    features = narrowed_features(described.features[kept])
     voxel = extractor.voxel_size
     grid = DistanceGrid.around(
         points,
@@ -183,9 +184,13 @@ def describe_shape(
         low=bbox_min,
         high=bbox_max,
     )
+    grid = narrowed_grid(grid)
+    kept = stored_rows(len(described.keypoints), STORED_KEYPOINTS)
+    keypoints = narrowed_keypoints(described.keypoints[kept], *grid.box)
+    features = narrowed_features(described.features[kept])
     return LibraryEntry(
         model_id=model_id,
-        points=points,
+        points=stored_surface(points, bbox_min, bbox_max),
         keypoints=keypoints,
         features=features,
         descriptor=model_descriptor(extractor, keypoints, features),
@@ -197,6 +202,21 @@ def describe_shape(
         source_sha256=source_sha256,
         units=units,
         symmetry=find_yaw_symmetry(points),
+    )
+
+
+def narrowed_entry(entry: LibraryEntry) -> LibraryEntry:
+    """``entry`` as the current layout stores it, for an entry read from a file of an earlier
+    one (its surface in 16-bit steps in sampling order, float32 key points, 255 grid levels):
+    narrowing what is already narrowed changes nothing. The descriptor is kept: it was
+    computed from key points at most a 16-bit step of the grid's box (0.01 mm for a chair)
+    from the narrowed ones."""
+    grid = narrowed_grid(entry.grid)
+    return replace(
+        entry,
+        points=stored_surface(entry.points, entry.bbox_min, entry.bbox_max),
+        keypoints=narrowed_keypoints(entry.keypoints, *grid.box),
+        grid=grid,
     )
 
 

@@ -12,13 +12,20 @@ new one.
 
 Nothing else reads these formats: a reader or writer given one refuses it with the command that
 converts it, never misreading it.
+
+A library of this format may hold entry files of the layout before
+(:mod:`~catalign.library.entry_codec`: the surface as rows in sampling order, float32 key points,
+the grid's 255 levels, deflated). They are served as they are; :func:`migrate` rewrites them in
+the current layout, which takes about a third less room, in one transaction of their rows.
 """
 
 from __future__ import annotations
 
 import json
 import sqlite3
+import zipfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +35,7 @@ from catalign.geometry.distance_grid import DistanceGrid
 from catalign.geometry.symmetry import YawSymmetry, find_yaw_symmetry
 from catalign.library import catalogue
 from catalign.library.catalogue_db import LEGACY_MANIFEST_NAME, no_catalogue, reading
-from catalign.library.entry import LibraryEntry
+from catalign.library.entry import LibraryEntry, narrowed_entry
 from catalign.library.npz import npz_arrays
 from catalign.library.quantise import (
     STORED_KEYPOINTS,
@@ -49,8 +56,11 @@ from catalign.library.store import (
     WRITING_NAME,
     begin_write,
     clean_unreferenced,
+    commit_changes,
     fsync_entries,
+    read_entry,
     read_manifest,
+    utc_now,
     write_entry,
     writer_lock,
 )
@@ -68,9 +78,9 @@ def migrate(
     library_dir: str | Path, progress: Callable[[int, int], None] | None = None
 ) -> Manifest:
     """Convert the library of format 2 or 3 in ``library_dir`` to this format, in place, and
-    return it; a library already of this format is returned as it is, after deleting what a
-    conversion killed after its rename left. ``progress`` is called with (done, total) after
-    each entry.
+    return it; in a library already of this format, rewrite the entry files of the earlier
+    layout and delete what a conversion killed after its rename left. ``progress`` is called
+    with (done, total) after each entry.
 
     Raises LibraryError where there is no library, LibraryCorruptError for an old catalogue
     that cannot be read or an entry file that is missing or damaged.
@@ -81,9 +91,7 @@ def migrate(
     with writer_lock(library_dir):
         version = format_of(library_dir)
         if version == FORMAT_VERSION:
-            current = read_manifest(library_dir)
-            clean_unreferenced(library_dir, {r.file for r in current.entries.values()})
-            return current
+            return _rewrite_earlier_layout(library_dir, read_manifest(library_dir), progress)
         old = read_legacy(library_dir) if version == JSON_VERSION else read_sqlite(library_dir)
         begin_write(library_dir)
         records = {}
@@ -99,6 +107,49 @@ def migrate(
         clean_unreferenced(library_dir, {r.file for r in records.values()})
         (library_dir / WRITING_NAME).unlink(missing_ok=True)
     return converted
+
+
+def _rewrite_earlier_layout(
+    library_dir: Path, current: Manifest, progress: Callable[[int, int], None] | None
+) -> Manifest:
+    """Rewrite the entries of a library of this format whose files are of the earlier layout
+    (:mod:`~catalign.library.entry_codec`: they are read as they are, and take a third more
+    room), then delete what an earlier conversion killed after its rename left."""
+    earlier = [i for i in current.ids if _of_earlier_layout(library_dir, current.entries[i])]
+    if earlier:
+        begin_write(library_dir)
+        records = {}
+        for done, model_id in enumerate(earlier, start=1):
+            try:
+                entry = read_entry(library_dir, model_id, current.entries[model_id])
+            except FileNotFoundError:
+                raise _missing(library_dir, model_id, current.entries[model_id]) from None
+            records[model_id] = write_entry(library_dir, narrowed_entry(entry))
+            if progress is not None:
+                progress(done, len(earlier))
+        updated = utc_now()
+        commit_changes(library_dir, put=records, updated=updated)  # the descriptors as they were
+        current = replace(current, updated=updated, entries={**current.entries, **records})
+    clean_unreferenced(library_dir, {r.file for r in current.entries.values()})
+    (library_dir / WRITING_NAME).unlink(missing_ok=True)
+    return current
+
+
+def _of_earlier_layout(library_dir: Path, record: EntryRecord) -> bool:
+    """Whether an entry's file holds the surface as rows (read from its zip directory alone);
+    a file that cannot be opened is left to the read that names what is wrong with it."""
+    try:
+        with zipfile.ZipFile(library_dir / record.file) as archive:
+            return "point_steps.npy" in archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return True
+
+
+def _missing(library_dir: Path, model_id: str, record: EntryRecord) -> LibraryCorruptError:
+    return LibraryCorruptError(
+        f"library entry {model_id!r}: its file {library_dir / record.file} is missing, so "
+        f"{library_dir} cannot be converted; restore the file or {rebuild_hint(library_dir)}"
+    )
 
 
 def format_of(library_dir: Path) -> int:
@@ -129,10 +180,7 @@ def _converted(library_dir: Path, model_id: str, record: EntryRecord) -> EntryRe
         arrays = npz_arrays(path.read_bytes())
         entry = _old_entry(arrays, record)
     except FileNotFoundError:
-        raise LibraryCorruptError(
-            f"library entry {model_id!r}: its file {path} is missing, so {library_dir} cannot "
-            f"be converted; restore the file or {rebuild_hint(library_dir)}"
-        ) from None
+        raise _missing(library_dir, model_id, record) from None
     except (OSError, KeyError, TypeError, ValueError) as exc:
         raise LibraryCorruptError(
             f"library entry {model_id!r} ({path}) cannot be read ({exc}), so {library_dir} "
@@ -155,10 +203,10 @@ def _old_entry(arrays: dict[str, np.ndarray], record: EntryRecord) -> LibraryEnt
     kept = stored_rows(len(keypoints), STORED_KEYPOINTS)
     cell, step = arrays["grid_cell_step"].astype(np.float64)
     symmetry = record.symmetry
-    return LibraryEntry(
+    entry = LibraryEntry(
         model_id=str(arrays["model_id"][()]),
         points=points,
-        keypoints=keypoints[kept].astype(np.float32).astype(np.float64),
+        keypoints=keypoints[kept].astype(np.float64),
         features=narrowed_features(features[kept]),
         descriptor=arrays["descriptor"].astype(np.float32),
         bbox_min=low,
@@ -171,6 +219,7 @@ def _old_entry(arrays: dict[str, np.ndarray], record: EntryRecord) -> LibraryEnt
         category=record.category,
         symmetry=find_yaw_symmetry(points) if symmetry is None else YawSymmetry(symmetry),
     )
+    return narrowed_entry(entry)
 
 
 def read_sqlite(library_dir: Path) -> Manifest:

@@ -5,11 +5,19 @@ models fits on one disk and an entry is one small read when it is shortlisted
 (docs/benchmarks.md, "Entry size"):
 
 * surface points as 16-bit steps across the model's bounding box (a 2 m model: 0.03 mm steps,
-  far below the fit's 5 cm inlier distance);
+  far below the fit's 5 cm inlier distance) while features and the grid are computed from
+  them, and stored in 12-bit steps (0.5 mm for 2 m, below a depth sensor's noise);
 * features as 8-bit multiples of one step per entry, the power of two that fits the largest
   component in 127 steps (a power of two, so that the values are exact in float32 and narrow
   again to the same steps: learned unit features get steps of 1/128);
-* of the key points only the subset matching reads (:func:`stored_rows`).
+* of the key points only the subset matching reads (:func:`stored_rows`), as 16-bit steps
+  across the distance grid's box (the model's grown by the grid's truncation, which reaches
+  past the half voxel by which a voxel-centred key point can leave the model's box);
+* the distance grid's levels in :data:`GRID_STEPS` steps instead of 255 (1.2 mm at a 2.5 cm
+  voxel, below the grid's own interpolation error of about a millimetre on average and a cell
+  at worst);
+* the surface points in the order :func:`surface_order` gives (along the box's first axis), in
+  which the compressor finds the neighbours' shared high bits.
 
 :func:`~catalign.library.entry.describe_shape` applies the narrowing itself, so an entry in
 memory holds exactly the values its file gives back.
@@ -21,8 +29,12 @@ import math
 
 import numpy as np
 
+from catalign.geometry.distance_grid import LEVELS, DistanceGrid
+
 POINT_STEPS = 65_535  # uint16 steps across the bounding box
+SURFACE_STEPS = 4_095  # the stored surface's 12-bit steps across it
 FEATURE_STEPS = 127  # the largest int8 step
+GRID_STEPS = 63  # six bits of the grid's 0..LEVELS
 # Key points an entry keeps: the most matching reads of a model (the engine's ``model_points``
 # default). Fewer matched points barely move the pose (registration.stages.match).
 STORED_KEYPOINTS = 1_000
@@ -40,16 +52,20 @@ def stored_rows(count: int, limit: int | None) -> np.ndarray:
     return np.sort(np.random.default_rng(_SUBSET_SEED).permutation(rows)[:limit])
 
 
-def point_steps(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """``points`` (N,3) as uint16 steps from ``low`` to ``high``."""
+def point_steps(
+    points: np.ndarray, low: np.ndarray, high: np.ndarray, count: int = POINT_STEPS
+) -> np.ndarray:
+    """``points`` (N,3) as uint16 steps from ``low`` to ``high``, ``count`` steps across."""
     span = _span(low, high)
-    scaled = np.rint((np.asarray(points, np.float64) - low) / span * POINT_STEPS)
-    return np.clip(scaled, 0, POINT_STEPS).astype(np.uint16)
+    scaled = np.rint((np.asarray(points, np.float64) - low) / span * count)
+    return np.clip(scaled, 0, count).astype(np.uint16)
 
 
-def points_from_steps(steps: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+def points_from_steps(
+    steps: np.ndarray, low: np.ndarray, high: np.ndarray, count: int = POINT_STEPS
+) -> np.ndarray:
     """The float32 points (N,3) that uint16 ``steps`` from ``low`` to ``high`` stand for."""
-    return (low + steps.astype(np.float64) * (_span(low, high) / POINT_STEPS)).astype(np.float32)
+    return (low + steps.astype(np.float64) * (_span(low, high) / count)).astype(np.float32)
 
 
 def feature_step(features: np.ndarray) -> float:
@@ -73,6 +89,40 @@ def features_from_steps(steps: np.ndarray, step: float) -> np.ndarray:
     return steps.astype(np.float32) * np.float32(step)
 
 
+def narrowed_keypoints(keypoints: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """``keypoints`` (float64) as their file gives them back, stored across ``low..high``."""
+    return narrowed_points(keypoints, low, high).astype(np.float64)
+
+
+def grid_steps(levels: np.ndarray) -> np.ndarray:
+    """A distance grid's uint8 levels (0..``LEVELS``) in :data:`GRID_STEPS` steps."""
+    scaled = np.rint(np.asarray(levels, np.float64) * (GRID_STEPS / LEVELS))
+    return scaled.astype(np.uint8)
+
+
+def grid_from_steps(steps: np.ndarray) -> np.ndarray:
+    """The uint8 levels :func:`grid_steps` stand for: ``GRID_STEPS`` is ``LEVELS`` again
+    ("far"), and the levels narrow back to the same steps."""
+    if steps.size and int(steps.max()) > GRID_STEPS:
+        raise ValueError(f"grid steps reach {int(steps.max())}, beyond {GRID_STEPS}")
+    return _GRID_LEVELS[steps]
+
+
+def narrowed_grid(grid: DistanceGrid) -> DistanceGrid:
+    """A distance grid as its file gives it back."""
+    return DistanceGrid(grid_from_steps(grid_steps(grid.values)), grid.origin, grid.cell, grid.step)
+
+
+def stored_surface(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The surface ``points`` (N,3) as their file gives them back: in :data:`SURFACE_STEPS`
+    steps across the box ``low..high``, sorted along its first axis, then the others (the
+    surface is an unordered sample; in this order it compresses by a sixth)."""
+    narrowed = points_from_steps(
+        point_steps(points, low, high, SURFACE_STEPS), low, high, SURFACE_STEPS
+    )
+    return narrowed[np.lexsort((narrowed[:, 2], narrowed[:, 1], narrowed[:, 0]))]
+
+
 def narrowed_points(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
     """``points`` as their file gives them back."""
     return points_from_steps(point_steps(points, low, high), low, high)
@@ -87,3 +137,6 @@ def narrowed_features(features: np.ndarray) -> np.ndarray:
 def _span(low: np.ndarray, high: np.ndarray) -> np.ndarray:
     """The box's extent per axis; a flat axis spans one step's worth, not zero."""
     return np.maximum(np.asarray(high, np.float64) - low, 1e-9)
+
+
+_GRID_LEVELS = np.rint(np.arange(GRID_STEPS + 1) * (LEVELS / GRID_STEPS)).astype(np.uint8)

@@ -18,7 +18,8 @@ from typing import Any
 from catalign.library.sources import CATEGORY_PATTERN, DEFAULT_CATEGORY
 
 # 2: entries hold their surface's distance grid; 3: an SQLite catalogue; 4: small entries
-# (narrowed arrays, deflated) and each entry's descriptor in the catalogue
+# (narrowed arrays, compressed; entry_codec.py reads both of their layouts) and each entry's
+# descriptor in the catalogue
 FORMAT_VERSION = 4
 MIGRATABLE_VERSIONS = (2, 3)  # ``catalign library migrate`` converts these
 ENTRIES_DIR = "entries"

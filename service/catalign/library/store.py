@@ -4,7 +4,7 @@ A library is a directory::
 
     catalogue.sqlite                   format version, extractor, timestamps, one row per entry
                                        (its file, checksums, source, category...): catalogue.py
-    entries/<id>-<sha256[:12]>.npz     one entry's arrays, narrowed and deflated (npz.py), read
+    entries/<id>-<sha256[:12]>.npz     one entry's arrays, narrowed and compressed (npz.py), read
                                        when the entry is first needed
     .lock                              flock(2)ed by writers
     .writing                           a writer's mark, there until its clean-up is done
