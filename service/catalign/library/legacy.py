@@ -5,7 +5,7 @@ Format 2 kept its catalogue in one JSON file (``manifest.json``) rewritten whole
 change; format 3 in ``catalogue.sqlite`` without the entries' descriptors. Both stored entries
 at full precision and uncompressed (about 0.8 MB a chair). A conversion rewrites every entry as
 this format stores it (:mod:`~catalign.library.entry_codec`: narrowed, only the key points
-matching reads, deflated), to new content-addressed names beside the old files, then renames a
+matching reads, compressed), to new content-addressed names beside the old files, then renames a
 new catalogue into place, and only then deletes the old files and the JSON file. Killed at any
 point, it leaves the old library whole (with leftovers the next run rewrites or sweeps) or the
 new one.

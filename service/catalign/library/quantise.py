@@ -14,10 +14,10 @@ models fits on one disk and an entry is one small read when it is shortlisted
   across the distance grid's box (the model's grown by the grid's truncation, which reaches
   past the half voxel by which a voxel-centred key point can leave the model's box);
 * the distance grid's levels in :data:`GRID_STEPS` steps instead of 255 (1.2 mm at a 2.5 cm
-  voxel, below the grid's own interpolation error of about a millimetre on average and a cell
-  at worst);
-* the surface points in the order :func:`surface_order` gives (along the box's first axis), in
-  which the compressor finds the neighbours' shared high bits.
+  voxel, beside the grid's own interpolation error of about a millimetre on average and a cell
+  at worst; five bits lost 3 views of one evaluation report, docs/evaluation.md);
+* the surface points in the order :func:`stored_surface` gives (along the box's first axis),
+  in which the compressor finds the neighbours' shared high bits.
 
 :func:`~catalign.library.entry.describe_shape` applies the narrowing itself, so an entry in
 memory holds exactly the values its file gives back.
