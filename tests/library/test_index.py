@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import catalign.library as library_api
+import catalign.library.shortlist_index as shortlist_index
 from catalign.errors import InvalidInputError, LibraryError, ModelNotFoundError
 from catalign.features.extractor import FPFHExtractor
 from catalign.geometry.io import read_shape
@@ -30,6 +31,7 @@ from catalign.library.entry import (
 )
 from catalign.library.quantise import SURFACE_STEPS
 from catalign.library.sources import SourceFile
+from catalign.library.store import manifest_stamp
 from tests.library.conftest import stored
 
 
@@ -156,6 +158,24 @@ def test_build_add_remove_reload_round_trip(files, tmp_path, extractor):
     np.testing.assert_array_equal(lib["c-1"].features, fresh.features)
     with pytest.raises(ModelNotFoundError, match="'a'"):
         lib["a"]
+
+
+def test_an_add_writes_the_shortlist_index_again_once_too_many_entries_wait(
+    files, tmp_path, extractor, monkeypatch
+):
+    monkeypatch.setattr(shortlist_index, "STALE_INDEX_ENTRIES", 2)  # instead of 1,000
+    out = tmp_path / "lib"
+    build([files.cloud(f"s{i}.npy", i) for i in range(3)], out, extractor, progress=False)
+    add(out, [files.cloud("a.npy", 10), files.cloud("b.npy", 11)], extractor, progress=False)
+    assert load(out, extractor.fingerprint).index.unindexed == 2  # as many as may wait
+    stamp = manifest_stamp(out)
+    add(out, [files.cloud("c.npy", 12)], extractor, progress=False)
+    index = load(out, extractor.fingerprint).index
+    assert (index.indexed, index.unindexed) == (6, 0)  # written again over every entry
+    assert manifest_stamp(out) != stamp
+    (out / "shortlist-index" / "index.json").unlink()  # a lost index: every entry waits
+    add(out, [files.cloud("d.npy", 13)], extractor, progress=False)
+    assert load(out, extractor.fingerprint).index.indexed == 7
 
 
 def test_an_added_file_can_be_recorded_under_another_name(files, tmp_path, extractor):

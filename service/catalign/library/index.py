@@ -28,7 +28,12 @@ from catalign.errors import (
 from catalign.library.builder import BuildJournal, Job, depends_on, describe_all
 from catalign.library.entry import SURFACE_POINTS, describe_file, describe_procedural
 from catalign.library.loaded import check_fingerprint
-from catalign.library.shortlist_index import IndexSummary, write_index
+from catalign.library.shortlist_index import (
+    IndexSummary,
+    stale_limit,
+    waiting_entries,
+    write_index,
+)
 from catalign.library.sources import DEFAULT_CATEGORY, collect_sources, unit_factor
 from catalign.library.store import (
     EntryRecord,
@@ -191,8 +196,21 @@ def add(
             return records
 
         records = _describe(library_dir, extractor, jobs, commit_added, progress=progress)
+        _index_again_if_stale(library_dir)
     logger.info("wrote %d model(s) to %s", len(records), library_dir)
     return records
+
+
+def _index_again_if_stale(library_dir: Path) -> None:
+    """After an add, under its lock: write the shortlist's index again once more entries wait
+    for it than :func:`~catalign.library.shortlist_index.stale_limit` allows (logged)."""
+    entries = count_entries(library_dir)
+    waiting = waiting_entries(library_dir, entries)
+    if waiting <= stale_limit(entries):
+        return
+    logger.info("%d of %d entries wait for the shortlist index: writing it", waiting, entries)
+    write_index(library_dir, read_manifest(library_dir).entries)
+    commit_changes(library_dir)  # serving processes load the library again, with the index
 
 
 def remove(library_dir: str | Path, ids: Sequence[str]) -> int:

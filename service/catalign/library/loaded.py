@@ -29,7 +29,7 @@ from catalign.errors import (
 )
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
-from catalign.library.shortlist_index import ShortlistIndex, read_index
+from catalign.library.shortlist_index import ShortlistIndex, read_index, stale_limit
 from catalign.library.store import (
     ENTRIES_DIR,
     EntryRecord,
@@ -46,8 +46,6 @@ logger = logging.getLogger(__name__)
 # Entries read from disk that a process keeps (about half a megabyte each, read back): more
 # than one request shortlists, fewer than a library of thousands holds.
 CACHED_ENTRIES = 128
-# Unindexed entries (beyond a tenth of the library) past which loading says to index again.
-STALE_INDEX_ENTRIES = 1_000
 _LOAD_ATTEMPTS = 5  # a writer may commit and delete files while a reader checks the entries
 
 
@@ -235,7 +233,7 @@ def _log_loaded(library: Library) -> None:
     index = library.index
     indexed = "no shortlist index" if index is None else f"{index.indexed} in its index"
     logger.info("loaded library %s: %d models, %s", library.path, len(library), indexed)
-    if index is not None and index.unindexed > max(STALE_INDEX_ENTRIES, len(library) // 10):
+    if index is not None and index.unindexed > stale_limit(len(library)):
         logger.warning(
             "%d entries of %s were added or changed since its shortlist index was written and "
             "are scored one by one; write it again with `catalign library index %s`",
