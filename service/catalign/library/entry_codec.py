@@ -20,6 +20,7 @@ from catalign.library.entry import LibraryEntry
 from catalign.library.npz import npz_bytes
 from catalign.library.quantise import (
     POINT_STEPS,
+    SURFACE_STEPS,
     feature_step,
     feature_steps,
     features_from_steps,
@@ -28,7 +29,6 @@ from catalign.library.quantise import (
     point_steps,
     points_from_steps,
 )
-from catalign.library.quantise import SURFACE_STEPS as SURFACE
 
 _STRING_FIELDS = ("model_id", "source", "source_sha256", "units")
 _LARGE = ("surface_steps", "grid_steps")  # LZMA-compressed (npz.py)
@@ -41,7 +41,9 @@ def entry_bytes(entry: LibraryEntry) -> bytes:
     key_low, key_high = entry.grid.box
     arrays = {
         "model_id": np.array(entry.model_id),
-        "surface_steps": np.ascontiguousarray(point_steps(entry.points, low, high, SURFACE).T),
+        "surface_steps": np.ascontiguousarray(
+            point_steps(entry.points, low, high, SURFACE_STEPS).T
+        ),
         "keypoint_steps": point_steps(entry.keypoints, key_low, key_high),
         "feature_steps": feature_steps(entry.features, step),
         "feature_step": np.array(step),
@@ -64,9 +66,9 @@ def entry_from_arrays(arrays: dict[str, np.ndarray]) -> LibraryEntry:
     strings = {name: _string(arrays[name], name) for name in _STRING_FIELDS}
     if "surface_steps" in arrays:
         steps = _array(arrays["surface_steps"], "surface_steps", np.uint16, None).T
-        count = SURFACE
-        if steps.shape[1] != 3 or (steps.size and int(steps.max()) > SURFACE):
-            raise ValueError(f"surface_steps has shape {steps.shape[::-1]} or exceeds {SURFACE}")
+        count = SURFACE_STEPS
+        if steps.shape[1] != 3 or (steps.size and int(steps.max()) > count):
+            raise ValueError(f"surface_steps has shape {steps.shape[::-1]} or exceeds {count}")
     else:  # written before the surface was stored by column, in 16-bit steps
         steps = _array(arrays["point_steps"], "point_steps", np.uint16, 3)
         count = POINT_STEPS

@@ -117,15 +117,15 @@ def stored_surface(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.
     """The surface ``points`` (N,3) as their file gives them back: in :data:`SURFACE_STEPS`
     steps across the box ``low..high``, sorted along its first axis, then the others (the
     surface is an unordered sample; in this order it compresses by a sixth)."""
-    narrowed = points_from_steps(
-        point_steps(points, low, high, SURFACE_STEPS), low, high, SURFACE_STEPS
-    )
+    narrowed = narrowed_points(points, low, high, SURFACE_STEPS)
     return narrowed[np.lexsort((narrowed[:, 2], narrowed[:, 1], narrowed[:, 0]))]
 
 
-def narrowed_points(points: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """``points`` as their file gives them back."""
-    return points_from_steps(point_steps(points, low, high), low, high)
+def narrowed_points(
+    points: np.ndarray, low: np.ndarray, high: np.ndarray, count: int = POINT_STEPS
+) -> np.ndarray:
+    """``points`` as their file gives them back, stored in ``count`` steps across the box."""
+    return points_from_steps(point_steps(points, low, high, count), low, high, count)
 
 
 def narrowed_features(features: np.ndarray) -> np.ndarray:
