@@ -209,7 +209,8 @@ def index(
 ) -> None:
     """Write the shortlist's index again over every entry: the entries added or described
     again since it was written are found by an exact scan until then. Builds write it
-    themselves; serving processes load the library again with it."""
+    themselves, and so does an add once more than 1,000 entries (or a tenth) wait; serving
+    processes load the library again with it."""
     from catalign.library.index import reindex
 
     with exit_on_error(), _entries_bar(f"indexing {library.name}") as advance:
