@@ -19,11 +19,12 @@ the nearest symmetric pose, and 5 cm), and the median and 95th-percentile second
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
     .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
-        [--copies 100000] [--views 2] [--seed 0] [--model-dir DIR]
+        [--copies 100000] [--unfitted] [--views 2] [--seed 0] [--model-dir DIR]
         [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
 
 ``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
-those distractor counts.
+those distractor counts; ``--unfitted`` the shortlist by descriptors alone, without the
+re-ranking by outlines (``engine.shortlist.fit_candidates`` None), on every library.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ from catalign.library.store import (
     read_manifest,
     write_entry,
 )
+from catalign.registration.config import EngineConfig
 from catalign.registration.engine import Engine
 from catalign.threads import limit_threads
 from catalign.training.calibration import right_pose
@@ -192,10 +194,12 @@ def measure(
     frames: dict,
     symmetries: dict,
     seed: int,
+    config: EngineConfig | None = None,
 ) -> list[tuple]:
-    """Every case registered against the library in ``folder``; a row per category."""
+    """Every case registered against the library in ``folder`` (by an engine of ``config``);
+    a row per category."""
     library = load(folder, None)
-    engine = Engine(extractor, library)
+    engine = Engine(extractor, library, config=config)
     rows = []
     for category, items in cases.items():
         own, listed, right, seconds = [], [], [], []
@@ -225,6 +229,9 @@ def main() -> None:
     parser.add_argument(
         "--copies", type=int, default=None, help="also grow each library to this many entries"
     )
+    parser.add_argument(
+        "--unfitted", action="store_true", help="also shortlist without the outline fit"
+    )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -250,13 +257,20 @@ def main() -> None:
             folders.append((f"{kind}, copies", grown))
         for label, folder in folders:
             rows += measure(label, folder, described_by, cases, frames, symmetries, args.seed)
+            if args.unfitted and kind == "retrieval encoders":
+                unfitted = EngineConfig().replaced(shortlist={"fit_candidates": None})
+                rows += measure(
+                    f"{label}, no outline fit", folder, described_by, cases, frames,
+                    symmetries, args.seed, unfitted,
+                )  # fmt: skip
     lines = [
         "# Retrieval at scale",
         "",
         f"Every shared chair and table plus N procedural chairs; {args.views} view(s) of each "
         f"validation shape, seed {args.seed}, `up` given, category sent; weights "
-        f"`{args.model_dir or 'model_store'}`, shortlisted by its retrieval encoders and, as the "
-        "baseline in the same run, by the mean and max of its features; "
+        f"`{args.model_dir or 'model_store'}`, shortlisted by its retrieval encoders, the best "
+        "300 re-ranked by their outline fit (the baselines in the same run: without the fit, "
+        "and by the mean and max of the features); "
         f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
         "own model answered; shortlisted: its own model among the candidates registered; right: "
         "within 10 degrees (nearest symmetric pose) and 5 cm.",

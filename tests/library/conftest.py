@@ -238,3 +238,10 @@ def _snapshot(library_dir: Path) -> dict[str, bytes]:
 def snapshot():
     """Function: every file of a library (the writers' lock and mark aside) and its bytes."""
     return _snapshot
+
+
+def without_outlines(library_dir: Path) -> None:
+    """Turn a library's catalogue back into one of format 4 written before entries had
+    outlines: without their column."""
+    with closing(sqlite3.connect(library_dir / "catalogue.sqlite")) as connection, connection:
+        connection.execute("ALTER TABLE entries DROP COLUMN outline")

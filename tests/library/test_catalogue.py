@@ -39,6 +39,7 @@ from tests.library.conftest import (
     as_format_2,
     as_format_3,
     stored,
+    without_outlines,
     write_format_2,
 )
 
@@ -343,6 +344,24 @@ def test_entries_of_the_earlier_layout_are_served_then_rewritten(library, extrac
     assert rewritten != stamp  # serving processes load the rewritten files
     assert migrate(library).entries == records  # again: nothing left to do, nothing committed
     assert manifest_stamp(library) == rewritten
+
+
+def test_a_catalogue_written_before_outlines_is_served_then_given_them(
+    library, extractor, files
+) -> None:
+    records = info(library).entries
+    without_outlines(library)
+    served = load(library, extractor.fingerprint)
+    assert not any(served.record(i).outline for i in served.ids)
+    made = served.outlines(range(len(served)))  # made from the entries' points meanwhile
+    assert [o.to_bytes() for o in made] == [records[i].outline for i in served.ids]
+    add(library, [files.cloud("c.npy", 3)], extractor)  # a write gives the catalogue the column
+    after = info(library).entries
+    assert after["c"].outline and not after["a"].outline
+    stamp = manifest_stamp(library)
+    assert {i: r for i, r in migrate(library).entries.items() if i != "c"} == records
+    assert manifest_stamp(library) != stamp  # serving processes load the outlines
+    assert stored(library, "SELECT count(*) FROM entries WHERE length(outline) > 0") == [(3,)]
 
 
 def test_a_conversion_killed_before_or_after_its_rename_is_whole(library, extractor) -> None:

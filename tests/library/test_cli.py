@@ -11,7 +11,13 @@ from typer.testing import CliRunner
 from catalign.cli import app
 from catalign.data.shapes import procedural_shape
 from catalign.library.store import FORMAT_VERSION, manifest_stamp
-from tests.library.conftest import as_earlier_layout, as_format_2, stored, write_format_2
+from tests.library.conftest import (
+    as_earlier_layout,
+    as_format_2,
+    stored,
+    without_outlines,
+    write_format_2,
+)
 
 runner = CliRunner()
 
@@ -135,6 +141,11 @@ def test_a_library_of_the_older_format_is_refused_until_migrated(tmp_path: Path)
     compacted = runner.invoke(app, ["library", "migrate", str(library)])
     assert compacted.exit_code == 0, compacted.output
     assert "2 entries of the earlier layout rewritten" in compacted.output
+    assert "outlines added" not in compacted.output  # rewritten entries get theirs anyway
+    without_outlines(library)
+    outlined = runner.invoke(app, ["library", "migrate", str(library)])
+    assert outlined.exit_code == 0, outlined.output
+    assert "already of format 4, 2 outlines added, 2 models" in outlined.output
     assert {p.name: p.read_bytes() for p in (library / "entries").iterdir()} == entries
     info = runner.invoke(app, ["library", "info", str(library)])
     assert info.exit_code == 0 and "engine options: (the defaults)" in info.output

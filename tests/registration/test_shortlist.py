@@ -51,3 +51,32 @@ def test_with_up_a_model_of_another_height_drops_back(make_entry, make_library) 
     observed = short.keypoints @ leveller(z_up)  # model +Y -> world +Z
     view = QueryView(observed, short.features)
     assert shortlist(library, [view], None, leveller(z_up)) == ["short", "tall"]
+
+
+def _slabs(seat: float, seed: int) -> np.ndarray:
+    """A seat and a back, +Y up: a chair's outline."""
+    rng = np.random.default_rng(seed)
+    top = rng.uniform([0, seat, 0], [0.5, seat + 0.05, 0.5], (1500, 3))
+    back = rng.uniform([0, seat + 0.05, 0.45], [0.5, 0.9, 0.5], (1500, 3))
+    return np.vstack([top, back, rng.uniform([0, 0, 0], [0.04, seat, 0.04], (200, 3))])
+
+
+def test_the_model_a_view_lies_on_passes_one_its_descriptor_prefers(
+    make_entry, make_library
+) -> None:
+    own, other = _slabs(0.40, 1), _slabs(0.55, 2)
+    view_points = own[own[:, 2] < 0.3] + [1.0, 0.0, -2.0]  # its front, anywhere
+    features = _features(5, len(view_points))
+    library = make_library(
+        make_entry("own", own, features=_features(5, len(own))),  # pooled, nearly the same
+        make_entry("other", other, keypoints=view_points, features=features),
+    )
+    view = QueryView(view_points, features)  # the features the other model holds
+    assert shortlist(library, [view], None, None) == ["other", "own"]
+    fitted = shortlist(library, [view], 1, None, fit_candidates=2, fit_weight=20.0)
+    assert fitted == ["own"]
+    # only the best by descriptor are fitted: one candidate fitted keeps the order
+    assert shortlist(library, [view], None, None, fit_candidates=1, fit_weight=20.0) == [
+        "other",
+        "own",
+    ]

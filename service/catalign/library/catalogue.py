@@ -51,8 +51,11 @@ _LIBRARY_COLUMNS = ("fingerprint", "voxel_size", "created", "updated", "category
 _ENTRY_COLUMNS = (
     "model_id", "file", "sha256", "source", "source_sha256", "units", "num_points",
     "num_keypoints", "bbox_min_x", "bbox_min_y", "bbox_min_z", "bbox_max_x", "bbox_max_y",
-    "bbox_max_z", "size_x", "size_y", "size_z", "category", "symmetry", "descriptor",
+    "bbox_max_z", "size_x", "size_y", "size_z", "category", "symmetry", "descriptor", "outline",
 )  # fmt: skip
+# Added to format 4 after its first release: a catalogue without the column reads as entries
+# without outlines, and the first write adds it.
+_OUTLINE_COLUMN = "outline BLOB NOT NULL DEFAULT x''"
 _SCHEMA = f"""
 CREATE TABLE library (
     id INTEGER PRIMARY KEY CHECK (id = 1),
@@ -78,10 +81,12 @@ CREATE TABLE entries (
     {", ".join(f"{c} REAL NOT NULL" for c in _ENTRY_COLUMNS[8:17])},
     category TEXT NOT NULL,
     symmetry INTEGER,
-    descriptor BLOB NOT NULL
+    descriptor BLOB NOT NULL,
+    {_OUTLINE_COLUMN}
 );
 """
 _SELECT_ENTRIES = f"SELECT {', '.join(_ENTRY_COLUMNS)} FROM entries"
+_SELECT_WITHOUT_OUTLINES = f"SELECT {', '.join(_ENTRY_COLUMNS[:-1])}, x'' FROM entries"
 _PUT_ENTRY = (
     f"INSERT OR REPLACE INTO entries ({', '.join(_ENTRY_COLUMNS)}) "
     f"VALUES ({', '.join('?' * len(_ENTRY_COLUMNS))})"
@@ -97,13 +102,14 @@ def read(library_dir: Path, ids: Collection[str] | None = None) -> tuple[Manifes
     holds, when given), and the stamp of that state, from one read transaction."""
     with reading(library_dir) as connection:
         header = _header(connection, library_dir)
+        select = _select_entries(connection)
         if ids is None:
-            rows = connection.execute(_SELECT_ENTRIES).fetchall()
+            rows = connection.execute(select).fetchall()
         else:
             wanted, rows = list(ids), []
             for start in range(0, len(wanted), _CHUNK):
                 chunk = wanted[start : start + _CHUNK]
-                query = f"{_SELECT_ENTRIES} WHERE model_id IN ({', '.join('?' * len(chunk))})"
+                query = f"{select} WHERE model_id IN ({', '.join('?' * len(chunk))})"
                 rows += connection.execute(query, chunk).fetchall()
         entries = dict(_records(rows, library_dir))
     fingerprint, voxel_size, created, updated, category, engine, uid, generation = header
@@ -212,6 +218,7 @@ def update(
         raise ValueError(f"no library column {sorted(unknown)}")
     with writing(library_dir) as connection:
         _header(connection, library_dir)
+        _add_outline_column(connection)
         released = [f for i in drop if (f := _file_of(connection, i)) is not None]
         connection.executemany("DELETE FROM entries WHERE model_id = ?", [(i,) for i in drop])
         for model_id, record in put.items():
@@ -233,6 +240,7 @@ def replace(library_dir: Path, manifest: Manifest) -> list[str]:
     differ (a build over an existing library); returns the entry files released."""
     with writing(library_dir) as connection:
         _header(connection, library_dir)
+        _add_outline_column(connection)
         current = {row[0]: row for row in connection.execute(_SELECT_ENTRIES)}
         wanted = dict(zip(manifest.entries, _rows(manifest.entries), strict=True))
         drop = [(i,) for i in current if i not in wanted]
@@ -288,6 +296,23 @@ def _header(connection: sqlite3.Connection, library_dir: Path) -> tuple[Any, ...
     return fingerprint, voxel_size, created, updated, category, engine, uid, generation
 
 
+def _has_outlines(connection: sqlite3.Connection) -> bool:
+    columns = connection.execute("PRAGMA table_info(entries)").fetchall()
+    return any(column[1] == "outline" for column in columns)
+
+
+def _select_entries(connection: sqlite3.Connection) -> str:
+    """The query of every entry's row, outlines empty in a catalogue without their column."""
+    return _SELECT_ENTRIES if _has_outlines(connection) else _SELECT_WITHOUT_OUTLINES
+
+
+def _add_outline_column(connection: sqlite3.Connection) -> None:
+    """Give a catalogue written before entries had outlines their column (in the writer's
+    transaction: rolled back with it)."""
+    if not _has_outlines(connection):
+        connection.execute(f"ALTER TABLE entries ADD COLUMN {_OUTLINE_COLUMN}")
+
+
 def format_version(connection: sqlite3.Connection) -> Any:
     """The library row's format version (None without one)."""
     row = connection.execute("SELECT format_version FROM library").fetchone()
@@ -300,7 +325,7 @@ def _records(rows: list[Any], library_dir: Path) -> Iterator[tuple[str, EntryRec
     for row in rows:
         try:
             types = tuple(map(type, row))
-            if types[:-2] + types[-1:] != _ROW_TYPES or types[-2] not in _SYMMETRY_TYPES:
+            if types[:-3] + types[-2:] != _ROW_TYPES or types[-3] not in _SYMMETRY_TYPES:
                 raise TypeError(_wrong_types(row))
             record = EntryRecord(*row[1:8], row[8:11], row[11:14], row[14:17], *row[17:])
             record.check(row[0])
@@ -309,13 +334,13 @@ def _records(rows: list[Any], library_dir: Path) -> Iterator[tuple[str, EntryRec
         yield row[0], record
 
 
-_ROW_TYPES = (str, str, str, str, str, str, int, int, *(float,) * 9, str, bytes)
+_ROW_TYPES = (str, str, str, str, str, str, int, int, *(float,) * 9, str, bytes, bytes)
 _SYMMETRY_TYPES = (int, type(None))
 
 
 def _wrong_types(row: tuple[Any, ...]) -> str:
     kinds = [(kind,) for kind in _ROW_TYPES]
-    kinds.insert(-1, _SYMMETRY_TYPES)
+    kinds.insert(-2, _SYMMETRY_TYPES)
     bad = [(c, v) for c, v, k in zip(_ENTRY_COLUMNS, row, kinds, strict=True) if type(v) not in k]
     column, value = bad[0]
     return f"{column} is {type(value).__name__} {value!r}"
@@ -325,7 +350,7 @@ def _rows(entries: Mapping[str, EntryRecord]) -> list[tuple[Any, ...]]:
     return [
         (model_id, r.file, r.sha256, r.source, r.source_sha256, r.units, r.num_points,
          r.num_keypoints, *map(float, (*r.bbox_min, *r.bbox_max, *r.size)), r.category,
-         r.symmetry, r.descriptor)
+         r.symmetry, r.descriptor, r.outline)
         for model_id, r in entries.items()
     ]  # fmt: skip
 

@@ -236,9 +236,11 @@ def migrate(
 
     with exit_on_error():
         before = format_of(library) if library.is_dir() else None
-        files = None
+        files = outlined = None
         if before == FORMAT_VERSION:
-            files = {i: r.file for i, r in read_manifest(library).entries.items()}
+            records = read_manifest(library).entries
+            files = {i: r.file for i, r in records.items()}
+            outlined = {i for i, r in records.items() if r.outline}
         with _entries_bar(f"converting {library.name}") as advance:
             manifest = migrate_library(library, advance)
     if files is not None:
@@ -246,6 +248,11 @@ def migrate(
         done = f"already of format {FORMAT_VERSION}"
         if rewritten:
             done += f", {rewritten} entries of the earlier layout rewritten"
+        given = sum(
+            i not in outlined and files.get(i) == r.file for i, r in manifest.entries.items()
+        )
+        if given:
+            done += f", {given} outlines added"
     else:
         done = f"converted from format {before} to format {FORMAT_VERSION}"
     typer.echo(f"{library}: {done}, {len(manifest.entries)} models")

@@ -37,6 +37,7 @@ from catalign.library import catalogue
 from catalign.library.catalogue_db import LEGACY_MANIFEST_NAME, no_catalogue, reading
 from catalign.library.entry import LibraryEntry, narrowed_entry
 from catalign.library.npz import npz_arrays
+from catalign.library.outline import outline_of
 from catalign.library.quantise import (
     STORED_KEYPOINTS,
     narrowed_features,
@@ -114,19 +115,26 @@ def _rewrite_earlier_layout(
 ) -> Manifest:
     """Rewrite the entries of a library of this format whose files are of the earlier layout
     (:mod:`~catalign.library.entry_codec`: they are read as they are, and take a third more
-    room), then delete what an earlier conversion killed after its rename left."""
-    earlier = [i for i in current.ids if _of_earlier_layout(library_dir, current.entries[i])]
-    if earlier:
+    room), give the records written before outlines theirs
+    (:mod:`~catalign.library.outline`), then delete what an earlier conversion killed after
+    its rename left."""
+    earlier = {i for i in current.ids if _of_earlier_layout(library_dir, current.entries[i])}
+    behind = [i for i in current.ids if i in earlier or not current.entries[i].outline]
+    if behind:
         begin_write(library_dir)
         records = {}
-        for done, model_id in enumerate(earlier, start=1):
+        for done, model_id in enumerate(behind, start=1):
+            record = current.entries[model_id]
             try:
-                entry = read_entry(library_dir, model_id, current.entries[model_id])
+                entry = read_entry(library_dir, model_id, record)
             except FileNotFoundError:
-                raise _missing(library_dir, model_id, current.entries[model_id]) from None
-            records[model_id] = write_entry(library_dir, narrowed_entry(entry))
+                raise _missing(library_dir, model_id, record) from None
+            if model_id in earlier:
+                records[model_id] = write_entry(library_dir, narrowed_entry(entry))
+            else:
+                records[model_id] = replace(record, outline=outline_of(entry.points).to_bytes())
             if progress is not None:
-                progress(done, len(earlier))
+                progress(done, len(behind))
         updated = utc_now()
         commit_changes(library_dir, put=records, updated=updated)  # the descriptors as they were
         current = replace(current, updated=updated, entries={**current.entries, **records})

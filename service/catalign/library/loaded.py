@@ -29,6 +29,7 @@ from catalign.errors import (
 )
 from catalign.geometry.symmetry import YawSymmetry
 from catalign.library.entry import LibraryEntry
+from catalign.library.outline import Outline, outline_of
 from catalign.library.shortlist_index import ShortlistIndex, read_index, stale_limit
 from catalign.library.store import (
     ENTRIES_DIR,
@@ -110,6 +111,7 @@ class Library:
         for array in (self.descriptors, self.sizes, self.unit_descriptors):
             array.flags.writeable = False
         self._cache: OrderedDict[str, LibraryEntry] = OrderedDict()
+        self._made_outlines: dict[str, bytes] = {}
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
@@ -149,6 +151,29 @@ class Library:
             if order is not None:
                 return YawSymmetry(order)
         return self[model_id].symmetry
+
+    def outlines(self, rows: Sequence[int]) -> list[Outline]:
+        """The outlines of the entries at ``rows`` (of ``ids``), for the shortlist: as their
+        records hold them, or made from the entry's points (and kept) where a record written
+        before outlines, or an entry held in memory, has none."""
+        found = []
+        for row in rows:
+            model_id = self.ids[row]
+            data = b"" if model_id in self._held else self.manifest.entries[model_id].outline
+            if not data:
+                data = self._made_outlines.get(model_id, b"")
+            if not data:
+                data = outline_of(self[model_id].points).to_bytes()
+                with self._lock:
+                    self._made_outlines[model_id] = data
+            try:
+                found.append(Outline.from_bytes(data))
+            except ValueError as exc:
+                raise LibraryCorruptError(
+                    f"library entry {model_id!r} of {self.path} has a malformed outline ({exc}); "
+                    f"describe it again or {rebuild_hint(self.path)}"
+                ) from exc
+        return found
 
     def in_memory(self) -> Library:
         """This library with every entry read into memory, to serve after its folder is gone

@@ -57,6 +57,10 @@ class EntryRecord:
     descriptor: bytes = b""
     """The entry's shortlisting descriptor, float32 little-endian: a served library stacks
     these from the catalogue without opening an entry file."""
+    outline: bytes = b""
+    """The entry's :class:`~catalign.library.outline.Outline` as bytes, which the shortlist
+    re-ranks by; empty in a record written before entries had one (made again from the
+    entry's points when it is needed)."""
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -73,6 +77,7 @@ class EntryRecord:
             "category": self.category,
             "symmetry": self.symmetry,
             "descriptor": base64.b64encode(self.descriptor).decode(),
+            "outline": base64.b64encode(self.outline).decode(),
         }
 
     @classmethod
@@ -96,6 +101,7 @@ class EntryRecord:
             category=typed(data.get("category", default_category), str),
             symmetry=data.get("symmetry"),
             descriptor=_decoded(data.get("descriptor", "")),
+            outline=_decoded(data.get("outline", "")),
         )
         record.check(model_id)
         return record
@@ -110,6 +116,8 @@ class EntryRecord:
             raise ValueError(f"symmetry {symmetry!r} is not an order (0, 1, 2...)")
         if type(self.descriptor) is not bytes or len(self.descriptor) % 4:
             raise ValueError("descriptor is not float32 bytes")
+        if type(self.outline) is not bytes:
+            raise ValueError("outline is not bytes")
         if not _SHA256.fullmatch(self.sha256):
             raise ValueError(f"sha256 {self.sha256!r} is not a hex sha256")
         if self.file != entry_file_name(model_id, self.sha256):
@@ -163,4 +171,4 @@ def _decoded(text: Any) -> bytes:
     try:
         return base64.b64decode(typed(text, str), validate=True)
     except binascii.Error as exc:
-        raise ValueError(f"descriptor is not base64 ({exc})") from exc
+        raise ValueError(f"an array is not base64 ({exc})") from exc

@@ -45,6 +45,7 @@ from catalign.library.catalogue_db import CATALOGUE_NAME, LEGACY_MANIFEST_NAME, 
 from catalign.library.entry import LibraryEntry
 from catalign.library.entry_codec import entry_bytes, entry_from_arrays
 from catalign.library.npz import npz_arrays
+from catalign.library.outline import outline_of
 from catalign.library.records import (
     ENTRIES_DIR,
     FORMAT_VERSION,
@@ -171,6 +172,7 @@ def write_entry(library_dir: Path, entry: LibraryEntry) -> EntryRecord:
         category=entry.category,
         symmetry=entry.symmetry.order,
         descriptor=descriptor_bytes(entry.descriptor),
+        outline=outline_of(entry.points).to_bytes(),
     )
 
 

@@ -67,6 +67,8 @@ def assemble(
         retrieval=extractor.retrieval,
         index_from=config.shortlist.index_from,
         index_candidates=config.shortlist.index_candidates,
+        fit_candidates=config.shortlist.fit_candidates,
+        fit_weight=config.shortlist.fit_weight,
     )
     fitter = CategoryFitter(library, refiner, extent_points=config.verify.coverage_points)
     finisher = Finisher(

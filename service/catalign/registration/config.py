@@ -56,6 +56,11 @@ class ShortlistOptions(OptionGroup):
     of every entry (None: always every entry; a library without an index is always scanned)."""
     index_candidates: int = Field(default=1_024, ge=1)
     """Neighbours the index gives per heading the query is described at, scored exactly."""
+    fit_candidates: int | None = Field(default=300, ge=1)
+    """The best-scored entries re-ranked by how well the view lies on their outlines before
+    the ``top_k`` are kept (None: none, the scores alone rank)."""
+    fit_weight: float = Field(default=20.0, ge=0)
+    """Score lost per metre of a candidate's outline fit (the view's mean distance to it)."""
 
 
 class MatchOptions(OptionGroup):

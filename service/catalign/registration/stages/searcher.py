@@ -31,9 +31,10 @@ class Searcher:
     """The stages of one orientation's search over ``library`` (module docstring), with the
     options the engine's configuration names: ``heading_models`` (the best shortlisted models
     the headings are chosen on), ``up_belief_power``, ``heading_belief_power``,
-    ``index_from`` and ``index_candidates`` (when the shortlist reads the library's index);
-    and the extractor's ``retrieval`` encoders that describe the query for the shortlist
-    (None: its pooled features)."""
+    ``index_from`` and ``index_candidates`` (when the shortlist reads the library's index),
+    ``fit_candidates`` and ``fit_weight`` (its re-ranking by outlines); and the extractor's
+    ``retrieval`` encoders that describe the query for the shortlist (None: its pooled
+    features)."""
 
     library: Library
     matcher: Matcher
@@ -45,6 +46,8 @@ class Searcher:
     heading_belief_power: float
     index_from: int | None
     index_candidates: int
+    fit_candidates: int | None = None
+    fit_weight: float = 0.0
     retrieval: RetrievalHead | None = None
 
     def search(self, search: Search, request: Request) -> tuple[Search, list[Scored]]:
@@ -62,6 +65,8 @@ class Searcher:
                 request.category,
                 self.index_from,
                 self.index_candidates,
+                self.fit_candidates,
+                self.fit_weight,
             )
 
         # Match: keep the headings the leading candidates agree with, match every candidate

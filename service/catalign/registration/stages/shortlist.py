@@ -10,6 +10,9 @@ the extractor's retrieval encoders, each heading's view is described by the view
 key points turned into the canonical frame at that heading, as the features were computed.
 In a large library with an index (:mod:`catalign.library.shortlist_index`), only the index's
 nearest neighbours of each heading's descriptor and the entries it does not hold are scored.
+The best ``fit_candidates`` by those scores are then re-ranked by how well the view lies on each
+one's outline (:mod:`catalign.library.outline`), at the heading it scored best at: the descriptor
+finds the few hundred models a view may show, the fit picks the few worth registering.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import numpy as np
 
 from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
+from catalign.library.outline import OUTLINE_TRUNCATION, fit_distances
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
 
@@ -32,6 +36,8 @@ def shortlist(
     category: str | None = None,
     index_from: int | None = None,
     index_candidates: int | None = None,
+    fit_candidates: int | None = None,
+    fit_weight: float = 0.0,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
@@ -41,7 +47,8 @@ def shortlist(
     ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
     models are searched and the library has an index, only the index's ``index_candidates``
     nearest entries to each heading's descriptor and the unindexed ones are scored (either
-    None: every model is)."""
+    None: every model is). The best ``fit_candidates`` (None: none) then lose ``fit_weight``
+    per metre of their outline fit."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -67,10 +74,36 @@ def shortlist(
     else:
         candidates = np.arange(len(library)) if rows is None else np.flatnonzero(rows)
         scored = None if rows is None else candidates  # only the category's rows are scored
-    scores = retrieval_scores(library, descriptors, size, height, weight, scored).max(axis=0)
+    per_view = retrieval_scores(library, descriptors, size, height, weight, scored)
+    scores = per_view.max(axis=0)
+    if fit_candidates is not None and len(candidates) > 0:
+        fitted = _fitted(library, views, candidates, per_view, fit_candidates, fit_weight)
+        candidates, scores = fitted
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
         kth = -np.partition(-scores, count - 1)[count - 1]
         candidates, scores = candidates[scores >= kth], scores[scores >= kth]
     best = candidates[np.lexsort((candidates, -scores))]
     return [library.ids[i] for i in best[:count]]
+
+
+def _fitted(
+    library: Library,
+    views: list[QueryView],
+    candidates: np.ndarray,
+    per_view: np.ndarray,
+    count: int,
+    weight: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``candidates`` scored again: the best ``count`` (by their best heading's score in
+    ``per_view``) lose ``weight`` per metre of their outline fit at that heading, the others
+    as much as the worst fit (the truncation), so that none of them passes a fitted one."""
+    scores = per_view.max(axis=0)
+    kept = np.lexsort((candidates, -scores))[:count]
+    headings = per_view[:, kept].argmax(axis=0)
+    fits = np.full(len(candidates), OUTLINE_TRUNCATION)
+    for heading in np.unique(headings):
+        at = kept[headings == heading]
+        outlines = library.outlines(candidates[at])
+        fits[at] = fit_distances(outlines, views[heading].canonical_keypoints)
+    return candidates, scores - weight * fits
