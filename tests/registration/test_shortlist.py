@@ -73,10 +73,10 @@ def test_the_model_a_view_lies_on_passes_one_its_descriptor_prefers(
     )
     view = QueryView(view_points, features)  # the features the other model holds
     assert shortlist(library, [view], None, None) == ["other", "own"]
-    fitted = shortlist(library, [view], 1, None, fit_candidates=2, fit_weight=20.0)
-    assert fitted == ["own"]
+    fit = {"fit_from": 2, "fit_weight": 20.0}
+    assert shortlist(library, [view], 1, None, fit_candidates=2, **fit) == ["own"]
     # only the best by descriptor are fitted: one candidate fitted keeps the order
-    assert shortlist(library, [view], None, None, fit_candidates=1, fit_weight=20.0) == [
-        "other",
-        "own",
-    ]
+    assert shortlist(library, [view], None, None, fit_candidates=1, **fit) == ["other", "own"]
+    # and only in a library of at least ``fit_from`` models
+    unfitted = {"fit_from": 3, "fit_candidates": 2, "fit_weight": 20.0}
+    assert shortlist(library, [view], 1, None, **unfitted) == ["other"]

@@ -67,6 +67,7 @@ def assemble(
         retrieval=extractor.retrieval,
         index_from=config.shortlist.index_from,
         index_candidates=config.shortlist.index_candidates,
+        fit_from=config.shortlist.fit_from,
         fit_candidates=config.shortlist.fit_candidates,
         fit_weight=config.shortlist.fit_weight,
     )

@@ -56,6 +56,9 @@ class ShortlistOptions(OptionGroup):
     of every entry (None: always every entry; a library without an index is always scanned)."""
     index_candidates: int = Field(default=1_024, ge=1)
     """Neighbours the index gives per heading the query is described at, scored exactly."""
+    fit_from: int | None = Field(default=100, ge=1)
+    """Searched entries from which the best-scored are re-ranked by their outline fit (None:
+    never): among fewer the descriptors' ``top_k`` already hold a view's own model."""
     fit_candidates: int | None = Field(default=300, ge=1)
     """The best-scored entries re-ranked by how well the view lies on their outlines before
     the ``top_k`` are kept (None: none, the scores alone rank)."""

@@ -32,9 +32,9 @@ class Searcher:
     options the engine's configuration names: ``heading_models`` (the best shortlisted models
     the headings are chosen on), ``up_belief_power``, ``heading_belief_power``,
     ``index_from`` and ``index_candidates`` (when the shortlist reads the library's index),
-    ``fit_candidates`` and ``fit_weight`` (its re-ranking by outlines); and the extractor's
-    ``retrieval`` encoders that describe the query for the shortlist (None: its pooled
-    features)."""
+    ``fit_from``, ``fit_candidates`` and ``fit_weight`` (its re-ranking by outlines); and
+    the extractor's ``retrieval`` encoders that describe the query for the shortlist (None:
+    its pooled features)."""
 
     library: Library
     matcher: Matcher
@@ -46,6 +46,7 @@ class Searcher:
     heading_belief_power: float
     index_from: int | None
     index_candidates: int
+    fit_from: int | None = None
     fit_candidates: int | None = None
     fit_weight: float = 0.0
     retrieval: RetrievalHead | None = None
@@ -65,6 +66,7 @@ class Searcher:
                 request.category,
                 self.index_from,
                 self.index_candidates,
+                self.fit_from,
                 self.fit_candidates,
                 self.fit_weight,
             )

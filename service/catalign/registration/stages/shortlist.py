@@ -10,7 +10,8 @@ the extractor's retrieval encoders, each heading's view is described by the view
 key points turned into the canonical frame at that heading, as the features were computed.
 In a large library with an index (:mod:`catalign.library.shortlist_index`), only the index's
 nearest neighbours of each heading's descriptor and the entries it does not hold are scored.
-The best ``fit_candidates`` by those scores are then re-ranked by how well the view lies on each
+In a category of at least ``fit_from`` models, the best ``fit_candidates`` by those scores are
+then re-ranked by how well the view lies on each
 one's outline (:mod:`catalign.library.outline`), at the heading it scored best at: the descriptor
 finds the few hundred models a view may show, the fit picks the few worth registering.
 """
@@ -36,6 +37,7 @@ def shortlist(
     category: str | None = None,
     index_from: int | None = None,
     index_candidates: int | None = None,
+    fit_from: int | None = None,
     fit_candidates: int | None = None,
     fit_weight: float = 0.0,
 ) -> list[str]:
@@ -47,8 +49,9 @@ def shortlist(
     ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
     models are searched and the library has an index, only the index's ``index_candidates``
     nearest entries to each heading's descriptor and the unindexed ones are scored (either
-    None: every model is). The best ``fit_candidates`` (None: none) then lose ``fit_weight``
-    per metre of their outline fit."""
+    None: every model is). When at least ``fit_from`` models are searched, the best
+    ``fit_candidates`` then lose ``fit_weight`` per metre of their outline fit (either None:
+    no fit)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -76,7 +79,8 @@ def shortlist(
         scored = None if rows is None else candidates  # only the category's rows are scored
     per_view = retrieval_scores(library, descriptors, size, height, weight, scored)
     scores = per_view.max(axis=0)
-    if fit_candidates is not None and len(candidates) > 0:
+    fitting = fit_from is not None and fit_candidates is not None and searched >= fit_from
+    if fitting and len(candidates) > 0:
         fitted = _fitted(library, views, candidates, per_view, fit_candidates, fit_weight)
         candidates, scores = fitted
     count = len(candidates) if k is None else min(k, len(candidates))
