@@ -47,7 +47,7 @@ from tqdm import tqdm
 from catalign.data.procedural import generate_chair
 from catalign.data.shapes import Shape, SharedChairs, SharedTables
 from catalign.data.views import WORLD_UP
-from catalign.errors import LibraryError
+from catalign.errors import DegenerateInputError, LibraryError
 from catalign.evaluation.protocol import build_cases, frames_of, symmetries_of
 from catalign.features.extractor import DEFAULT_MODEL_DIR, LearnedExtractor, features_fingerprint
 from catalign.features.retrieval import RETRIEVAL_DIR
@@ -202,10 +202,16 @@ def measure(
     engine = Engine(extractor, library, config=config)
     rows = []
     for category, items in cases.items():
-        own, listed, right, seconds = [], [], [], []
+        own, listed, right, seconds, refused = [], [], [], [], 0
         for case in tqdm(items, desc=f"{len(library)} models, {category}"):
             started = time.perf_counter()
-            result = engine.register(case.points, up=WORLD_UP, seed=seed, category=category)
+            try:
+                result = engine.register(case.points, up=WORLD_UP, seed=seed, category=category)
+            except DegenerateInputError:  # a view the service refuses (a table top edge-on)
+                refused += 1
+                for counted in (own, listed, right):
+                    counted.append(False)
+                continue
             seconds.append(time.perf_counter() - started)
             if result.model_id not in frames:  # a distractor: its frame from its entry
                 frames[result.model_id] = NCCFrame.fit(library[result.model_id].points)
@@ -213,7 +219,9 @@ def measure(
             listed.append(case.shape_id in {c.model_id for c in result.candidates})
             right.append(right_pose(result.pose, result.model_id, case, frames, symmetries))
         in_category = int(np.sum(library.categories == category))
-        rows.append((kind, len(library), in_category, category, own, listed, right, seconds))
+        rows.append(
+            (kind, len(library), in_category, category, own, listed, right, seconds, refused)
+        )
     return rows
 
 
@@ -273,15 +281,16 @@ def main() -> None:
         "and by the mean and max of the features); "
         f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
         "own model answered; shortlisted: its own model among the candidates registered; right: "
-        "within 10 degrees (nearest symmetric pose) and 5 cm.",
+        "within 10 degrees (nearest symmetric pose) and 5 cm; refused: views the engine "
+        "refuses as degenerate (counted wrong).",
         "",
-        "| shortlist | models | of the category | observed | views | top-1 % | shortlisted % | "
-        "right % | median s | p95 s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| shortlist | models | of the category | observed | views | refused | top-1 % | "
+        "shortlisted % | right % | median s | p95 s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for kind, size, in_category, category, own, listed, right, seconds in rows:
+    for kind, size, in_category, category, own, listed, right, seconds, refused in rows:
         lines.append(
-            f"| {kind} | {size} | {in_category} | {category} | {len(own)} | "
+            f"| {kind} | {size} | {in_category} | {category} | {len(own)} | {refused} | "
             f"{100 * np.mean(own):.1f} | "
             f"{100 * np.mean(listed):.1f} | {100 * np.mean(right):.1f} | "
             f"{np.median(seconds):.3f} | {np.percentile(seconds, 95):.3f} |"

@@ -364,6 +364,15 @@ def test_a_catalogue_written_before_outlines_is_served_then_given_them(
     assert stored(library, "SELECT count(*) FROM entries WHERE length(outline) > 0") == [(3,)]
 
 
+def test_a_damaged_outline_is_named_when_it_is_read(library, extractor) -> None:
+    with closing(sqlite3.connect(library / "catalogue.sqlite")) as connection, connection:
+        connection.execute("UPDATE entries SET outline = x'00ff' WHERE model_id = 'b'")
+    served = load(library, extractor.fingerprint)
+    assert served.outlines([0])[0].levels.size > 0  # the sound one
+    with pytest.raises(LibraryCorruptError, match=r"entry 'b' .* malformed outline"):
+        served.outlines([1])
+
+
 def test_a_conversion_killed_before_or_after_its_rename_is_whole(library, extractor) -> None:
     records = info(library).entries
     catalogue = (library / "catalogue.sqlite").read_bytes()
