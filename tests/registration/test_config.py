@@ -19,7 +19,13 @@ DEFAULTS = {
     "top_k": 10,
     "model_cache": 256,
     "input": {"min_points": 50, "fine_cells": 4, "pass_voxels": 32000},
-    "shortlist": {"index_from": 5000, "index_candidates": 1024},
+    "shortlist": {
+        "index_from": 5000,
+        "index_candidates": 1024,
+        "fit_from": 100,
+        "fit_candidates": 300,
+        "fit_weight": 20.0,
+    },
     "orient": {
         "headings": None,
         "up_proposals": 3,
