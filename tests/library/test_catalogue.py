@@ -364,6 +364,15 @@ def test_a_catalogue_written_before_outlines_is_served_then_given_them(
     assert stored(library, "SELECT count(*) FROM entries WHERE length(outline) > 0") == [(3,)]
 
 
+def test_a_process_that_registers_nothing_may_leave_the_outlines_unread(library, extractor) -> None:
+    records = info(library).entries
+    listed = load(library, extractor.fingerprint, outlines=False)
+    assert not any(listed.record(i).outline for i in listed.ids)
+    assert listed.ids == sorted(records) and all(records[i].outline for i in listed.ids)
+    made = [o.to_bytes() for o in listed.outlines(range(len(listed)))]  # from the entries
+    assert made == [records[i].outline for i in listed.ids]
+
+
 def test_a_damaged_outline_is_named_when_it_is_read(library, extractor) -> None:
     with closing(sqlite3.connect(library / "catalogue.sqlite")) as connection, connection:
         connection.execute("UPDATE entries SET outline = x'00ff' WHERE model_id = 'b'")

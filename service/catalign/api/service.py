@@ -287,12 +287,11 @@ class RegistrationService:
 
     def _load(self) -> None:
         from catalign.features.extractor import LearnedExtractor
-        from catalign.library.loaded import load
 
         started = time.perf_counter()
         extractor = LearnedExtractor(self.settings.model_dir, threads=self.settings.worker_threads)
         self._stamp = manifest_stamp(self.settings.library)
-        library = load(self.settings.library, extractor.fingerprint)
+        library = self._read_library(extractor)
         self._served = self._serve(extractor, library)
         self.metrics.library_models.set(len(library))
         logger.info(
@@ -304,9 +303,15 @@ class RegistrationService:
         )
 
     def _reload(self, extractor: LearnedExtractor) -> Library:
+        return self._read_library(extractor)
+
+    def _read_library(self, extractor: LearnedExtractor) -> Library:
+        """The library as this process holds it: without the records' outlines when worker
+        processes register (they read theirs), since only the shortlist reads them."""
         from catalign.library.loaded import load
 
-        return load(self.settings.library, extractor.fingerprint)
+        registers = not self.settings.worker_processes
+        return load(self.settings.library, extractor.fingerprint, outlines=registers)
 
     def _serve(self, extractor: LearnedExtractor, library: Library) -> Served:
         """What the server holds: the extractor and the library, and an engine where
@@ -355,7 +360,6 @@ class RegistrationService:
         category: str | None,
     ) -> Library:
         from catalign.library.index import add
-        from catalign.library.loaded import load
 
         # Keep the suffix (it selects the reader), and record the upload's own name as source.
         source = upload.path.rename(upload.path.with_name(model_id + upload.path.suffix.lower()))
@@ -372,12 +376,11 @@ class RegistrationService:
                 max_points=self.settings.max_points,
             )
         logger.info("added model %s to %s", model_id, self.settings.library)
-        return load(self.settings.library, extractor.fingerprint)
+        return self._read_library(extractor)
 
     def _remove(self, extractor: LearnedExtractor, model_id: str) -> Library:
         from catalign.library.index import remove
-        from catalign.library.loaded import load
 
         remove(self.settings.library, [model_id])
         logger.info("removed model %s from %s", model_id, self.settings.library)
-        return load(self.settings.library, extractor.fingerprint)
+        return self._read_library(extractor)

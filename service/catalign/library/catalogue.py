@@ -97,12 +97,15 @@ def exists(library_dir: Path) -> bool:
     return catalogue_path(library_dir).is_file()
 
 
-def read(library_dir: Path, ids: Collection[str] | None = None) -> tuple[Manifest, Stamp]:
+def read(
+    library_dir: Path, ids: Collection[str] | None = None, outlines: bool = True
+) -> tuple[Manifest, Stamp]:
     """The library's description with every entry's record (only those of ``ids`` that it
-    holds, when given), and the stamp of that state, from one read transaction."""
+    holds, when given; their outlines empty unless ``outlines``), and the stamp of that state,
+    from one read transaction."""
     with reading(library_dir) as connection:
         header = _header(connection, library_dir)
-        select = _select_entries(connection)
+        select = _select_entries(connection) if outlines else _SELECT_WITHOUT_OUTLINES
         if ids is None:
             rows = connection.execute(select).fetchall()
         else:

@@ -232,9 +232,13 @@ class Library:
             raise _missing(self.path, model_id, record) from None
 
 
-def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
+def load(
+    library_dir: str | Path, extractor_fingerprint: str | None, *, outlines: bool = True
+) -> Library:
     """Load and check a library for an extractor (``None`` skips the fingerprint check); the
     entries' files are checked as they are read (:meth:`Library.verify` reads them all).
+    Without ``outlines`` the records' outlines are not read (a process that lists the models
+    but registers nothing; :meth:`Library.outlines` would make them from the entries).
 
     Raises LibraryError if there is no library (or one of an older format, naming the command
     that converts it), LibraryCorruptError for a bad catalogue, an unknown format version or a
@@ -242,7 +246,7 @@ def load(library_dir: str | Path, extractor_fingerprint: str | None) -> Library:
     """
     library_dir = Path(library_dir)
     for _ in range(_LOAD_ATTEMPTS):
-        manifest, stamp = read_manifest_and_stamp(library_dir)
+        manifest, stamp = read_manifest_and_stamp(library_dir, outlines)
         if extractor_fingerprint is not None:
             check_fingerprint(manifest, extractor_fingerprint, library_dir)
         if _files_present(library_dir, manifest, stamp):

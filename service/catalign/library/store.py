@@ -98,10 +98,11 @@ def read_manifest(library_dir: Path, ids: Collection[str] | None = None) -> Mani
     return catalogue.read(library_dir, ids)[0]
 
 
-def read_manifest_and_stamp(library_dir: Path) -> tuple[Manifest, Stamp]:
-    """The catalogue and the stamp of that very state (a reader compares it to the current
-    one to tell a file deleted by a newer write from a missing one)."""
-    return catalogue.read(library_dir)
+def read_manifest_and_stamp(library_dir: Path, outlines: bool = True) -> tuple[Manifest, Stamp]:
+    """The catalogue (its records' outlines left empty unless ``outlines``) and the stamp of
+    that very state (a reader compares it to the current one to tell a file deleted by a newer
+    write from a missing one)."""
+    return catalogue.read(library_dir, outlines=outlines)
 
 
 def count_entries(library_dir: Path) -> int:
