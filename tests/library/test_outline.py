@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from catalign.geometry.levelling import floor_anchor
 from catalign.library.outline import (
     FIT_POINTS,
     LIFT_CELLS,
@@ -15,7 +16,6 @@ from catalign.library.outline import (
     OUTLINE_TRUNCATION,
     SHIFT_CELLS,
     Outline,
-    anchor_of,
     fit_distances,
     outline_of,
 )
@@ -52,7 +52,7 @@ def test_bytes_that_are_no_outline_are_refused(data: bytes) -> None:
 def test_the_levels_are_the_truncated_distances_in_steps() -> None:
     points = _chair_like(1)
     outline = outline_of(points)
-    anchored = points - anchor_of(points)
+    anchored = points - floor_anchor(points)
     x, y, z = outline.levels.shape
     cells = np.stack(np.meshgrid(np.arange(x), np.arange(y), np.arange(z), indexing="ij"), -1)
     centres = outline.origin + outline.cell * cells.reshape(-1, 3)
@@ -66,7 +66,7 @@ def test_the_levels_are_the_truncated_distances_in_steps() -> None:
 def _reference_fit(outline: Outline, points: np.ndarray) -> float:
     """The least mean nearest-cell level over the shifts, one shift at a time."""
     chosen = points[np.linspace(0, len(points) - 1, min(FIT_POINTS, len(points))).astype(int)]
-    chosen = chosen - anchor_of(points)
+    chosen = chosen - floor_anchor(points)
     best = np.inf
     reach = [SHIFT_CELLS, LIFT_CELLS, SHIFT_CELLS]
     for shift in itertools.product(*(range(-r, r + 1) for r in reach)):

@@ -303,6 +303,7 @@ class RegistrationService:
         )
 
     def _reload(self, extractor: LearnedExtractor) -> Library:
+        """The library again, after another process changed it."""
         return self._read_library(extractor)
 
     def _read_library(self, extractor: LearnedExtractor) -> Library:

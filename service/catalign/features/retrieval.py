@@ -29,6 +29,7 @@ from safetensors.torch import load_file
 from torch import Tensor, nn
 
 from catalign.features.weights import verified_card
+from catalign.geometry.levelling import floor_anchor
 
 RETRIEVAL_DIR = "retrieval"
 WEIGHTS_FILE = "retrieval.safetensors"
@@ -43,9 +44,7 @@ POSITION_DIMS = 3
 def anchored(keypoints: np.ndarray) -> np.ndarray:
     """Canonical-frame positions from the anchor a view shares with its model: the middle of
     the cloud's extent along x and z, its lowest point along the up (+Y)."""
-    low, high = keypoints.min(axis=0), keypoints.max(axis=0)
-    anchor = np.array([(low[0] + high[0]) / 2, low[1], (low[2] + high[2]) / 2])
-    return (keypoints - anchor).astype(np.float32)
+    return (keypoints - floor_anchor(keypoints)).astype(np.float32)
 
 
 class SetEncoder(nn.Module):

@@ -56,3 +56,10 @@ def level_pose(pose: np.ndarray, turn: np.ndarray, pivot: np.ndarray) -> np.ndar
 def even_headings(count: int) -> tuple[float, ...]:
     """``count`` headings evenly spaced over the full turn, from zero."""
     return tuple(2 * np.pi * k / count for k in range(count))
+
+
+def floor_anchor(points: np.ndarray) -> np.ndarray:
+    """The point a levelled view and its upright model share best: the middle of the extent
+    across the floor (x and z) and the lowest point along the up (+Y)."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    return np.array([(low[0] + high[0]) / 2, low[1], (low[2] + high[2]) / 2])

@@ -8,8 +8,8 @@ entry's **outline**, the surface's distance field on 5 cm cells, truncated at 10
 mean distance of the view's key points to each outline (:func:`fit_distances`).
 
 Outlines are anchored as the retrieval encoders' positions are
-(:func:`~catalign.features.retrieval.anchored`): the middle of the extent across the floor and
-the lowest point. A partial view's anchor is not its model's (it sees the front, or not the
+(:func:`~catalign.geometry.levelling.floor_anchor`): the middle of the extent across the floor
+and the lowest point. A partial view's anchor is not its model's (it sees the front, or not the
 feet), so a view is tried at every shift of whole cells up to :data:`SHIFT_CELLS` across the
 floor and :data:`LIFT_CELLS` along the up, and keeps its best.
 """
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from catalign.geometry.distance_grid import LEVELS, DistanceGrid
+from catalign.geometry.levelling import floor_anchor
 
 OUTLINE_CELL = 0.05  # metres: finer cells cost memory at 10^5 entries, coarser lose the fit
 OUTLINE_TRUNCATION = 0.10  # distances past this say only "off the surface"
@@ -70,16 +71,10 @@ class Outline:
         return cls(np.array(origin), float(cell), flat[:cells].reshape(x, y, z))
 
 
-def anchor_of(points: np.ndarray) -> np.ndarray:
-    """The middle of ``points``' extent along x and z, their lowest point along +Y."""
-    low, high = points.min(axis=0), points.max(axis=0)
-    return np.array([(low[0] + high[0]) / 2, low[1], (low[2] + high[2]) / 2])
-
-
 def outline_of(points: np.ndarray) -> Outline:
     """The outline of a surface (an entry's points, in its frame, +Y up)."""
     points = np.asarray(points, dtype=np.float64)
-    anchored = points - anchor_of(points)
+    anchored = points - floor_anchor(points)
     span = np.ptp(anchored, axis=0) + 2 * OUTLINE_TRUNCATION
     cell = max(OUTLINE_CELL, float(np.cbrt(np.prod(span + OUTLINE_CELL) / MAX_OUTLINE_CELLS)))
     grid = DistanceGrid.around(anchored, cell=cell, truncation=OUTLINE_TRUNCATION)
@@ -94,7 +89,7 @@ def fit_distances(outlines: Sequence[Outline], points: np.ndarray) -> np.ndarray
     if len(outlines) == 0 or len(points) == 0:
         return np.full(len(outlines), OUTLINE_TRUNCATION)
     chosen = points[np.linspace(0, len(points) - 1, min(FIT_POINTS, len(points))).astype(int)]
-    chosen = chosen - anchor_of(points)
+    chosen = chosen - floor_anchor(points)
     margin = np.array([SHIFT_CELLS, LIFT_CELLS, SHIFT_CELLS])
     shape = np.max([o.levels.shape for o in outlines], axis=0) + 2 * margin
     padded = np.full((len(outlines), *shape), OUTLINE_LEVELS, dtype=np.uint8)
