@@ -228,7 +228,8 @@ def migrate(
     """Convert a library of an older format (2: manifest.json, 3: catalogue.sqlite with full
     entries) in place: every entry rewritten small, no features computed again (no weights
     needed), a new catalogue.sqlite. In a library of the current format, rewrite the entries
-    of the earlier, larger layout. Safe to interrupt and run again."""
+    of the earlier, larger layout and give records written before outlines theirs. Safe to
+    interrupt and run again."""
     from catalign.library.legacy import format_of
     from catalign.library.legacy import migrate as migrate_library
     from catalign.library.records import FORMAT_VERSION
