@@ -48,7 +48,9 @@ def test_threads_sharing_a_cache_get_their_values_and_the_bound_holds():
 
 def test_the_stages_keep_at_most_model_cache_models(make_entry, make_library):
     rng = np.random.default_rng(0)
-    library = make_library(*(make_entry(f"m{i}", rng.normal(scale=0.2, size=(200, 3))) for i in range(3)))
+    library = make_library(
+        *(make_entry(f"m{i}", rng.normal(scale=0.2, size=(200, 3))) for i in range(3))
+    )
     config = EngineConfig(model_cache=1)
     matcher = build_matcher(config, library, distance=0.05)
     refiner = build_refiner(config, library, distance=0.05)
