@@ -990,13 +990,14 @@ def test_each_shard_writer_seeds_only_its_own_categories(
 
 
 def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
-    tmp_path: Path,
+    tmp_path: Path, procedural_library: Path
 ) -> None:
     """The base writer's seed-library script, run as its init container runs it (the volume
     and the image's folder replaced by folders here): an empty volume gets the image's library,
     entries first and the catalogue last; a second start changes nothing; a library of format 2
     or 3 (seeded by an older image) is converted in place, to the entries the image holds, and
-    one other retrieval encoders described is described again with the image's."""
+    one other retrieval encoders described is described again with the image's. The image's
+    library is the 3-chair one of the shipped weights (the shipped 60 would take a minute)."""
     from tests.library.conftest import as_format_2, as_format_3
 
     writer = find("dev", "Deployment", WRITER)
@@ -1004,7 +1005,7 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
     assert seed["name"] == "seed-library" and seed["command"][:2] == ["sh", "-c"]
     volume, image = tmp_path / "volume", tmp_path / "app"
     (image / "model_store").mkdir(parents=True)
-    (image / "model_store" / "library").symlink_to(ROOT / "model_store" / "library")
+    (image / "model_store" / "library").symlink_to(procedural_library)
     script = seed["command"][2].replace("/var/lib/catalign/library", str(volume))
     script = script.replace("/app/", f"{image}/")
     bin_dir = tmp_path / "bin"  # `catalign` as the image has it, from this checkout
@@ -1020,7 +1021,7 @@ def test_the_writer_seeds_an_empty_volume_once_and_converts_an_older_library(
         assert done.returncode == 0, done.stderr
         return done.stdout
 
-    shipped = read_manifest(ROOT / "model_store" / "library")
+    shipped = read_manifest(procedural_library)
     assert "seeded" in run()
     assert read_manifest(volume).entries == shipped.entries
     seeded = load(volume, shipped.fingerprint)
