@@ -19,12 +19,16 @@ the nearest symmetric pose, and 5 cm), and the median and 95th-percentile second
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
     .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
-        [--copies 100000] [--unfitted] [--views 2] [--seed 0] [--model-dir DIR]
+        [--copies 100000] [--without fit share] [--engine NAME=VALUE...] [--views 2]
+        [--seed 0] [--model-dir DIR]
         [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
 
 ``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
-those distractor counts; ``--unfitted`` the shortlist by descriptors alone, without the
-re-ranking by outlines (``engine.shortlist.fit_candidates`` None), on every library.
+those distractor counts; ``--without fit`` the shortlist by descriptors alone, without the
+re-ranking by outlines (``engine.shortlist.fit_candidates`` None), and ``--without share`` the
+re-ranking without its last step, the share of the view lying on each outline
+(``engine.shortlist.share_candidates`` None), on every library. ``--engine`` sets engine
+options for every run, as ``catalign evaluate --engine`` does.
 """
 
 from __future__ import annotations
@@ -62,7 +66,7 @@ from catalign.library.store import (
     read_manifest,
     write_entry,
 )
-from catalign.registration.config import EngineConfig
+from catalign.registration.config import EngineConfig, parse_options
 from catalign.registration.engine import Engine
 from catalign.threads import limit_threads
 from catalign.training.calibration import right_pose
@@ -225,6 +229,13 @@ def measure(
     return rows
 
 
+# --without's baselines: their label and the shortlist options that switch the step off
+BASELINES = {
+    "fit": ("no outline fit", {"fit_candidates": None}),
+    "share": ("no shares on outlines", {"share_candidates": None}),
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--distractors", type=int, nargs="+", default=[0, 1000, 10000])
@@ -238,7 +249,14 @@ def main() -> None:
         "--copies", type=int, default=None, help="also grow each library to this many entries"
     )
     parser.add_argument(
-        "--unfitted", action="store_true", help="also shortlist without the outline fit"
+        "--without",
+        nargs="+",
+        choices=sorted(BASELINES),
+        default=[],
+        help="also shortlist without the outline fit, or without the shares on outlines",
+    )
+    parser.add_argument(
+        "--engine", nargs="+", default=[], metavar="NAME=VALUE", help="engine options"
     )
     parser.add_argument("--cache", type=Path, default=Path("/tmp/catalign-retrieval"))
     parser.add_argument("--threads", type=int, default=2)
@@ -250,6 +268,7 @@ def main() -> None:
     extractor = LearnedExtractor(args.model_dir)
     shared, cases, frames, symmetries = shared_cases(args.views, args.seed)
 
+    config = parse_options(args.engine)
     kinds = [("retrieval encoders", extractor)]
     if args.pooled is not None:
         kinds.append(("pooled features", pooled_extractor(args.model_dir, args.cache)))
@@ -264,21 +283,25 @@ def main() -> None:
             grown = with_copies(built, args.copies, args.threads)
             folders.append((f"{kind}, copies", grown))
         for label, folder in folders:
-            rows += measure(label, folder, described_by, cases, frames, symmetries, args.seed)
-            if args.unfitted and kind == "retrieval encoders":
-                unfitted = EngineConfig().replaced(shortlist={"fit_candidates": None})
+            rows += measure(
+                label, folder, described_by, cases, frames, symmetries, args.seed, config
+            )
+            for step in args.without if kind == "retrieval encoders" else ():
+                name, shortlist = BASELINES[step]
                 rows += measure(
-                    f"{label}, no outline fit", folder, described_by, cases, frames,
-                    symmetries, args.seed, unfitted,
+                    f"{label}, {name}", folder, described_by, cases, frames,
+                    symmetries, args.seed, config.replaced(shortlist=shortlist),
                 )  # fmt: skip
     lines = [
         "# Retrieval at scale",
         "",
         f"Every shared chair and table plus N procedural chairs; {args.views} view(s) of each "
         f"validation shape, seed {args.seed}, `up` given, category sent; weights "
-        f"`{args.model_dir or 'model_store'}`, shortlisted by its retrieval encoders, the best "
-        "300 re-ranked by their outline fit (the baselines in the same run: without the fit, "
-        "and by the mean and max of the features); "
+        f"`{args.model_dir or 'model_store'}`; engine options "
+        f"{' '.join(args.engine) or 'the defaults'}; shortlisted by its retrieval encoders, the "
+        "best 300 re-ranked by their outline fit and the best 30 of those by the share of the view "
+        "on their outlines (the baselines in the same run: without the shares, without the "
+        "fit, and by the mean and max of the features); "
         f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
         "own model answered; shortlisted: its own model among the candidates registered; right: "
         "within 10 degrees (nearest symmetric pose) and 5 cm; refused: views the engine "

@@ -13,18 +13,37 @@ nearest neighbours of each heading's descriptor and the entries it does not hold
 In a category of at least ``fit_from`` models, the best ``fit_candidates`` by those scores are
 then re-ranked by how well the view lies on each
 one's outline (:mod:`catalign.library.outline`), at the heading it scored best at: the descriptor
-finds the few hundred models a view may show, the fit picks the few worth registering.
+finds the few hundred models a view may show, the fit picks the few worth registering. The best
+``share_candidates`` of those gain by the share of the view lying on their outlines, read finer.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
-from catalign.library.outline import OUTLINE_TRUNCATION, fit_distances
+from catalign.library.outline import OUTLINE_TRUNCATION, fit_outlines, lying_shares
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
+
+
+@dataclass(frozen=True)
+class OutlineRanking:
+    """How the shortlist re-ranks by outlines (``engine.shortlist``'s ``fit_*`` and ``share_*``):
+    from ``fit_from`` searched entries, the best ``fit_candidates`` by descriptor lose
+    ``fit_weight`` per metre of their outline fit, and the best ``share_candidates`` of those
+    gain ``share_weight`` times the share of the view within ``share_distance`` of their
+    outlines. None: that step is skipped."""
+
+    fit_from: int | None = None
+    fit_candidates: int | None = None
+    fit_weight: float = 0.0
+    share_candidates: int | None = None
+    share_distance: float = 0.0
+    share_weight: float = 0.0
 
 
 def shortlist(
@@ -37,9 +56,7 @@ def shortlist(
     category: str | None = None,
     index_from: int | None = None,
     index_candidates: int | None = None,
-    fit_from: int | None = None,
-    fit_candidates: int | None = None,
-    fit_weight: float = 0.0,
+    ranking: OutlineRanking | None = None,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
@@ -49,9 +66,7 @@ def shortlist(
     ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
     models are searched and the library has an index, only the index's ``index_candidates``
     nearest entries to each heading's descriptor and the unindexed ones are scored (either
-    None: every model is). When at least ``fit_from`` models are searched, the best
-    ``fit_candidates`` then lose ``fit_weight`` per metre of their outline fit (either None:
-    no fit)."""
+    None: every model is). ``ranking`` re-ranks by outlines (None: it does not)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -79,10 +94,10 @@ def shortlist(
         scored = None if rows is None else candidates  # only the category's rows are scored
     per_view = retrieval_scores(library, descriptors, size, height, weight, scored)
     scores = per_view.max(axis=0)
-    fitting = fit_from is not None and fit_candidates is not None and searched >= fit_from
-    if fitting and len(candidates) > 0:
-        fitted = _fitted(library, views, candidates, per_view, fit_candidates, fit_weight)
-        candidates, scores = fitted
+    if ranking is not None and len(candidates) > 0:
+        fitting = ranking.fit_from is not None and ranking.fit_candidates is not None
+        if fitting and searched >= ranking.fit_from:
+            scores = _fitted(library, views, candidates, per_view, ranking)
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
         kth = -np.partition(-scores, count - 1)[count - 1]
@@ -96,18 +111,31 @@ def _fitted(
     views: list[QueryView],
     candidates: np.ndarray,
     per_view: np.ndarray,
-    count: int,
-    weight: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``candidates`` scored again: the best ``count`` (by their best heading's score in
-    ``per_view``) lose ``weight`` per metre of their outline fit at that heading, the others
-    as much as the worst fit (the truncation), so that none of them passes a fitted one."""
+    ranking: OutlineRanking,
+) -> np.ndarray:
+    """``candidates``' scores again: the best ``ranking.fit_candidates`` (by their best
+    heading's score in ``per_view``) lose ``fit_weight`` per metre of their outline fit at that
+    heading, the others as much as the worst fit (the truncation), so that none of them passes
+    a fitted one; then the best ``share_candidates`` of all gain ``share_weight`` times the
+    share of the view lying on their outlines."""
     scores = per_view.max(axis=0)
-    kept = np.lexsort((candidates, -scores))[:count]
+    kept = np.lexsort((candidates, -scores))[: ranking.fit_candidates]
     headings = per_view[:, kept].argmax(axis=0)
     fits = np.full(len(candidates), OUTLINE_TRUNCATION)
+    shifts = np.zeros((len(candidates), 3), dtype=int)
     for heading in np.unique(headings):
         at = kept[headings == heading]
+        fit = fit_outlines(library.outlines(candidates[at]), views[heading].canonical_keypoints)
+        fits[at], shifts[at] = fit
+    scores = scores - ranking.fit_weight * fits
+    if ranking.share_candidates is None:
+        return scores
+    best = np.lexsort((candidates, -scores))[: min(ranking.share_candidates, len(kept))]
+    headings = per_view[:, best].argmax(axis=0)
+    shares = np.zeros(len(candidates))
+    for heading in np.unique(headings):
+        at = best[headings == heading]
         outlines = library.outlines(candidates[at])
-        fits[at] = fit_distances(outlines, views[heading].canonical_keypoints)
-    return candidates, scores - weight * fits
+        points = views[heading].canonical_keypoints
+        shares[at] = lying_shares(outlines, points, shifts[at], ranking.share_distance)
+    return scores + ranking.share_weight * shares
