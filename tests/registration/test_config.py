@@ -105,6 +105,7 @@ DEFAULTS = {
         "confidence_margin": 0.2,
         "exact_fitness": 0.9,
         "sure_fitness": 0.95,
+        "fit_margin": 0.02,
         "heading_fallback": 0.7,
     },
 }

@@ -74,8 +74,8 @@ class Round:
         confidence = self.confidence.get(model_id)
         return Finished(refined.search, refined.scored, refined.fit, evidence, confidence)
 
-    def decide(self, found: list[Found]):
-        return decide(found, RULES, refine=self.refine, finish=self.finish)
+    def decide(self, found: list[Found], rules: Rules = RULES):
+        return decide(found, rules, refine=self.refine, finish=self.finish)
 
 
 def _models(decision) -> list[str]:
@@ -109,6 +109,16 @@ def test_a_sure_fit_beats_one_that_fits_only_exactly() -> None:
     found = [_found("turned", 0.9), _found("right", 0.5)]
     decision = Round({"turned": 0.92, "right": 0.97}).decide(found)
     assert _models(decision)[0] == "right"
+
+
+def test_with_a_fit_margin_the_closest_sure_fit_beats_a_better_scored_twin() -> None:
+    found = [_found("twin", 0.9), _found("own", 0.5), _found("other", 0.4)]
+    fitness = {"twin": 0.96, "own": 0.995, "other": 0.985}
+    assert _models(Round(fitness).decide(found))[0] == "twin"  # no margin: the score decides
+    margin = Rules(**{**vars(RULES), "fit_margin": 0.02})
+    assert _models(Round(fitness).decide(found, margin))[0] == "own"
+    # within the margin of the closest fit the score decides again
+    assert _models(Round({**fitness, "twin": 0.98}).decide(found, margin))[0] == "twin"
 
 
 def test_swept_poses_are_refined_only_when_no_fit_is_sure_and_kept_only_if_exact() -> None:

@@ -163,4 +163,5 @@ def build_rules(config: EngineConfig) -> Rules:
         exact_fitness=decision.exact_fitness,
         sure_fitness=decision.sure_fitness,
         confidence_margin=decision.confidence_margin,
+        fit_margin=decision.fit_margin,
     )

@@ -202,6 +202,13 @@ class DecisionOptions(OptionGroup):
     refined too; an answer that fits surely beats one that fits only exactly. At
     ``exact_fitness`` or below, every exact fit is sure. 0.95 gained 2 *same* views within 10
     degrees with ``up`` and without (of 108, seeds 0 and 1), lost none (seed 3 too)."""
+    fit_margin: float | None = Field(default=0.02, ge=0, le=1)
+    """Among the answers that fit surely (else exactly), only those whose fitness is within
+    this of the closest fit's compete on score (None: all of them): the observed instance's
+    own model fits its view more closely than a near twin that also fits surely. 0.02 gained a
+    *same* view in 7 cells of the 8 reports of ``docs/evaluation.md`` and lost a *cross* one
+    in 1; among 10^4 chairs (``bench/retrieval.py``) it gained top-1 views on two seeds of
+    three and lost none."""
     heading_fallback: float = Field(default=0.7, ge=0, le=1)
     """With ``heading_mass`` (or ``up_mass``): the confidence below which an answer found at
     the confident headings (or ups) alone sends the query to a search at every proposed

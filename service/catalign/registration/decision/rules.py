@@ -17,8 +17,10 @@ hand-made records.
    that surface without matching its parts, and measured a worse category-level pose than the
    matched ones, so the others are dropped.
 3. The answer is the best-scored pose that fits surely, else exactly (the observed instance
-   itself), else the best of the refined best matches; its alternatives are the other distinct
-   refined answers, best first.
+   itself), else the best of the refined best matches; among those that fit, only the ones
+   within ``fit_margin`` of the closest fit compete (a near twin of the observed chair fits its
+   view surely too, but not as closely as the chair's own model). Its alternatives are the
+   other distinct refined answers, best first.
 4. Each answer is finished (its category fit and confidence); an alternative more confident
    than an answer that does not fit exactly by over ``confidence_margin`` takes its place if it
    still is once finished as the answer was (refitted at the observed size).
@@ -87,6 +89,7 @@ class Rules:
     exact_fitness: float
     sure_fitness: float
     confidence_margin: float | None
+    fit_margin: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,10 +199,14 @@ def ranked_answers(
     symmetry_of: SymmetryOf = no_symmetry,
 ) -> list[Refined]:
     """The distinct answers among ``refined``, the winner first (step 3 of the module
-    docstring): the best-scored of those that fit surely, else exactly, else of ``best``;
-    the rest by score, at most ``1 + alternatives`` in all. Ties keep the order given."""
+    docstring): the best-scored of those that fit surely, else exactly (of those, the ones
+    within ``fit_margin`` of the closest fit), else of ``best``; the rest by score, at most
+    ``1 + alternatives`` in all. Ties keep the order given."""
     exact = [r for r in refined if _fits(r, rules.exact_fitness)]
     exact = [r for r in exact if _fits(r, rules.sure_fitness)] or exact
+    if exact and rules.fit_margin is not None:
+        closest = max(r.fit.fitness for r in exact)
+        exact = [r for r in exact if _fits(r, closest - rules.fit_margin)]
     winner = max(exact or best, key=lambda r: r.scored.score)
     rest = sorted((r for r in refined if r is not winner), key=lambda r: -r.scored.score)
     return distinct([winner, *rest], 1 + rules.alternatives, lambda r: r.scored, symmetry_of)
