@@ -1,14 +1,11 @@
-"""What the shortlist's re-ranking by outlines costs a query: three engines on one library,
-timed in turn.
+"""What the shortlist's outline fit costs a query: two engines on one library, timed in turn.
 
-One engine re-ranks the shortlist by outline fit and then by the shares of the view on the
-best outlines (the defaults), one by the fit alone (``shortlist.share_candidates`` None), one
-shortlists by the descriptors alone (``shortlist.fit_candidates`` None); all serve the same
-loaded library in one warm process, and each view is registered by each, in an order that
-turns from view to view, so that the page cache, the entries each process keeps and the
-machine's load weigh on all alike. The views are those of ``bench/retrieval.py`` (the
-validation chairs, ``up`` given, the category sent), registered against a library it built
-(``--library``, e.g. its 1,158 or 10,158 models).
+One engine re-ranks the shortlist by outlines (the defaults), the other shortlists by the
+descriptors alone (``shortlist.fit_candidates`` None); both serve the same loaded library in
+one warm process, and each view is registered by both, in alternating order, so that the
+page cache, the entries each process keeps and the machine's load weigh on both alike. The
+views are those of ``bench/retrieval.py`` (the validation chairs, ``up`` given, the category
+sent), registered against a library it built (``--library``, e.g. its 1,158 or 10,158 models).
 Prints a markdown table and writes it to ``bench/results/outline_fit.md``.
 
     .venv/bin/python bench/outline_fit.py --library DIR [--views 30] [--seed 1] [--out FILE]
@@ -33,10 +30,6 @@ from catalign.threads import limit_threads
 
 RESULTS = Path(__file__).parent / "results" / "outline_fit.md"
 WARM_UP = 3
-BASELINES = {  # the shortlist options that switch each step of the re-ranking off
-    "outline fit alone": {"share_candidates": None},
-    "descriptors alone": {"fit_candidates": None},
-}
 
 
 def main() -> None:
@@ -51,18 +44,16 @@ def main() -> None:
     library = load(args.library, None)
     extractor = LearnedExtractor(None)
     engines = {
-        "outline fit and shares": Engine(extractor, library),
-        **{
-            name: Engine(extractor, library, config=EngineConfig().replaced(shortlist=options))
-            for name, options in BASELINES.items()
-        },
+        "outline fit": Engine(extractor, library),
+        "descriptors alone": Engine(
+            extractor, library, config=EngineConfig().replaced(shortlist={"fit_candidates": None})
+        ),
     }
     _, cases, _, _ = shared_cases(2, args.seed)
     views = cases["chair"][: args.views]
     seconds: dict[str, list[float]] = {name: [] for name in engines}
     for number, case in enumerate(views):
-        turn = number % len(engines)
-        order = [*list(engines)[turn:], *list(engines)[:turn]]
+        order = list(engines) if number % 2 else list(reversed(engines))
         for name in order:
             started = perf_counter()
             engines[name].register(case.points, up=WORLD_UP, seed=0, category="chair")
@@ -70,11 +61,11 @@ def main() -> None:
                 seconds[name].append(perf_counter() - started)
     baseline = float(np.median(seconds["descriptors alone"]))
     lines = [
-        "# The re-ranking by outlines: its cost",
+        "# The outline fit's cost",
         "",
         f"{library!r}; {len(views) - WARM_UP} views of the validation chairs (seed {args.seed}, "
-        f"after {WARM_UP} to warm up), each registered by each engine, the order turning from "
-        f"view to view; {args.threads} threads, load average {load_average():.2f}.",
+        f"after {WARM_UP} to warm up), each registered by both engines in alternating order; "
+        f"{args.threads} threads, load average {load_average():.2f}.",
         "",
         "| shortlist | median s | p95 s | ratio of medians |",
         "|---|---:|---:|---:|",

@@ -19,15 +19,14 @@ the nearest symmetric pose, and 5 cm), and the median and 95th-percentile second
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
     .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
-        [--copies 100000] [--without fit share] [--engine NAME=VALUE...] [--views 2]
+        [--copies 100000] [--without fit] [--engine NAME=VALUE...] [--views 2]
         [--seed 0] [--model-dir DIR]
         [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
 
 ``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
 those distractor counts; ``--without fit`` the shortlist by descriptors alone, without the
-re-ranking by outlines (``engine.shortlist.fit_candidates`` None), and ``--without share`` the
-re-ranking without its last step, the share of the view lying on each outline
-(``engine.shortlist.share_candidates`` None), on every library. ``--engine`` sets engine
+re-ranking by outlines (``engine.shortlist.fit_candidates`` None), on every library.
+``--engine`` sets engine
 options for every run, as ``catalign evaluate --engine`` does.
 """
 
@@ -232,7 +231,6 @@ def measure(
 # --without's baselines: their label and the shortlist options that switch the step off
 BASELINES = {
     "fit": ("no outline fit", {"fit_candidates": None}),
-    "share": ("no shares on outlines", {"share_candidates": None}),
 }
 
 
@@ -253,7 +251,7 @@ def main() -> None:
         nargs="+",
         choices=sorted(BASELINES),
         default=[],
-        help="also shortlist without the outline fit, or without the shares on outlines",
+        help="also shortlist without the outline fit",
     )
     parser.add_argument(
         "--engine", nargs="+", default=[], metavar="NAME=VALUE", help="engine options"
@@ -299,8 +297,7 @@ def main() -> None:
         f"validation shape, seed {args.seed}, `up` given, category sent; weights "
         f"`{args.model_dir or 'model_store'}`; engine options "
         f"{' '.join(args.engine) or 'the defaults'}; shortlisted by its retrieval encoders, the "
-        "best 300 re-ranked by their outline fit and the best 30 of those by the share of the view "
-        "on their outlines (the baselines in the same run: without the shares, without the "
+        "best 300 re-ranked by their outline fit (the baselines in the same run: without the "
         "fit, and by the mean and max of the features); "
         f"{args.threads} threads, load average {load_average():.2f}. Top-1: the observed shape's "
         "own model answered; shortlisted: its own model among the candidates registered; right: "

@@ -25,9 +25,6 @@ DEFAULTS = {
         "fit_from": 100,
         "fit_candidates": 300,
         "fit_weight": 20.0,
-        "share_candidates": 30,
-        "share_distance": 0.03,
-        "share_weight": 2.0,
     },
     "orient": {
         "headings": None,

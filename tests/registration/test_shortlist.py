@@ -83,11 +83,3 @@ def test_the_model_a_view_lies_on_passes_one_its_descriptor_prefers(
     assert ranked(None, fit_candidates=1, **fit) == ["other", "own"]
     # and only in a library of at least ``fit_from`` models
     assert ranked(1, fit_from=3, fit_candidates=2, fit_weight=20.0) == ["other"]
-    # the share of the view on each outline, without the mean fit, ranks the same
-    share = {"share_candidates": 2, "share_distance": 0.03, "share_weight": 2.0}
-    assert ranked(1, fit_from=2, fit_candidates=2, **share) == ["own"]
-    # but only among the best ``share_candidates`` after the fit
-    assert ranked(None, fit_from=2, fit_candidates=2, **{**share, "share_candidates": 1}) == [
-        "other",
-        "own",
-    ]

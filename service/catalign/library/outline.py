@@ -5,10 +5,7 @@ chairs the view's own model is rarely first, though usually among the first few 
 tells the own model apart is that the view lies on its surface. So every record carries its
 entry's **outline**, the surface's distance field on 5 cm cells, truncated at 10 cm and kept in
 4-bit levels (about 4 KB for a chair), and the shortlist re-ranks its best few hundred by the
-mean distance of the view's key points to each outline (:func:`fit_outlines`). The best few
-of those are read once more, finer (:func:`lying_shares`): the share of the view's points that
-lie on the outline, read between cells and at half-cell offsets, which tells near twins apart
-where a mean of nearest-cell reads does not.
+mean distance of the view's key points to each outline (:func:`fit_distances`).
 
 Outlines are anchored as the retrieval encoders' positions are
 (:func:`~catalign.geometry.levelling.floor_anchor`): the middle of the extent across the floor
@@ -22,10 +19,8 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from catalign.geometry.distance_grid import LEVELS, DistanceGrid
 from catalign.geometry.levelling import floor_anchor
@@ -37,9 +32,6 @@ MAX_OUTLINE_CELLS = 200_000  # a model far larger than furniture gets coarser ce
 SHIFT_CELLS = 5  # shifts across the floor, in cells each way (25 cm)
 LIFT_CELLS = 1  # shifts along the up (5 cm): the feet may be hidden
 FIT_POINTS = 48  # view points read per shift
-SHARE_POINTS = 100  # view points read per offset by lying_shares
-# lying_shares' offsets around the best whole-cell shift, in cells along each axis
-SHARE_OFFSETS = np.stack(np.meshgrid(*[(-0.5, 0.0, 0.5)] * 3, indexing="ij"), -1).reshape(-1, 3)
 _HEADER = struct.Struct("<4f3H")  # origin (3), cell, shape (3)
 
 
@@ -90,23 +82,14 @@ def outline_of(points: np.ndarray) -> Outline:
     return Outline(grid.origin, grid.cell, levels.astype(np.uint8))
 
 
-class OutlineFit(NamedTuple):
-    """What :func:`fit_outlines` finds for each of C outlines."""
-
-    distances: np.ndarray  # (C,) metres: the least mean distance of the view to the outline
-    shifts: np.ndarray  # (C,3) whole cells: the shift of the view that reached it
-
-
-def fit_outlines(outlines: Sequence[Outline], points: np.ndarray) -> OutlineFit:
-    """For each outline, the least mean distance of ``points`` (a view's key points in the
-    canonical frame, any anchor) to it over the shifts, and that shift; the truncation (and no
-    shift) for no points."""
+def fit_distances(outlines: Sequence[Outline], points: np.ndarray) -> np.ndarray:
+    """(C,) metres: for each outline, the least mean distance of ``points`` (a view's key points
+    in the canonical frame, any anchor) to it over the shifts; the truncation for no points."""
     points = np.asarray(points, dtype=np.float64)
     if len(outlines) == 0 or len(points) == 0:
-        return OutlineFit(
-            np.full(len(outlines), OUTLINE_TRUNCATION), np.zeros((len(outlines), 3), dtype=int)
-        )
-    chosen = _spread(points, FIT_POINTS)
+        return np.full(len(outlines), OUTLINE_TRUNCATION)
+    chosen = points[np.linspace(0, len(points) - 1, min(FIT_POINTS, len(points))).astype(int)]
+    chosen = chosen - floor_anchor(points)
     margin = np.array([SHIFT_CELLS, LIFT_CELLS, SHIFT_CELLS])
     shape = np.max([o.levels.shape for o in outlines], axis=0) + 2 * margin
     padded = np.full((len(outlines), *shape), OUTLINE_LEVELS, dtype=np.uint8)
@@ -122,40 +105,7 @@ def fit_outlines(outlines: Sequence[Outline], points: np.ndarray) -> OutlineFit:
     strides = np.array([shape[1] * shape[2], shape[2], 1])
     base = cells @ strides + (np.arange(len(outlines)) * int(np.prod(shape)))[:, None]
     steps = [np.arange(-m, m + 1) for m in margin]
-    shifts = np.stack(np.meshgrid(*steps, indexing="ij"), axis=-1).reshape(-1, 3)
-    levels = padded.ravel()[base[:, None, :] + (shifts @ strides)[None, :, None]]
-    sums = levels.sum(axis=2, dtype=np.int32)  # (C, shifts)
-    best = sums.argmin(axis=1)
-    distances = sums[np.arange(len(outlines)), best] * (
-        OUTLINE_TRUNCATION / OUTLINE_LEVELS / len(chosen)
-    )
-    return OutlineFit(distances, shifts[best])
-
-
-def lying_shares(
-    outlines: Sequence[Outline], points: np.ndarray, shifts: np.ndarray, distance: float
-) -> np.ndarray:
-    """(C,) for each outline, the largest share of ``points`` (up to :data:`SHARE_POINTS` of
-    them) within ``distance`` of it, read trilinearly, over the half-cell offsets around its
-    whole-cell shift in ``shifts`` (:func:`fit_outlines`'); 0 for no points."""
-    points = np.asarray(points, dtype=np.float64)
-    shares = np.zeros(len(outlines))
-    if len(points) == 0:
-        return shares
-    chosen = _spread(points, SHARE_POINTS)
-    step = OUTLINE_TRUNCATION / OUTLINE_LEVELS
-    for row, (outline, shift) in enumerate(zip(outlines, shifts, strict=True)):
-        at = (chosen - outline.origin) / outline.cell + shift
-        at = (at[None] + SHARE_OFFSETS[:, None]).reshape(-1, 3).T
-        levels = map_coordinates(
-            outline.levels.astype(np.float32), at, order=1, mode="grid-constant",
-            cval=OUTLINE_LEVELS,
-        ).reshape(len(SHARE_OFFSETS), len(chosen))  # fmt: skip
-        shares[row] = (levels * step < distance).mean(axis=1).max()
-    return shares
-
-
-def _spread(points: np.ndarray, count: int) -> np.ndarray:
-    """Up to ``count`` of ``points`` spread over their order, anchored as outlines are."""
-    chosen = points[np.linspace(0, len(points) - 1, min(count, len(points))).astype(int)]
-    return chosen - floor_anchor(points)
+    shifts = np.stack(np.meshgrid(*steps, indexing="ij"), axis=-1).reshape(-1, 3) @ strides
+    levels = padded.ravel()[base[:, None, :] + shifts[None, :, None]]  # (C, shifts, points)
+    best = levels.sum(axis=2, dtype=np.int32).min(axis=1)
+    return best * (OUTLINE_TRUNCATION / OUTLINE_LEVELS / len(chosen))

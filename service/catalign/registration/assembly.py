@@ -72,9 +72,6 @@ def assemble(
             fit_from=config.shortlist.fit_from,
             fit_candidates=config.shortlist.fit_candidates,
             fit_weight=config.shortlist.fit_weight,
-            share_candidates=config.shortlist.share_candidates,
-            share_distance=config.shortlist.share_distance,
-            share_weight=config.shortlist.share_weight,
         ),
     )
     fitter = CategoryFitter(library, refiner, extent_points=config.verify.coverage_points)

@@ -64,13 +64,6 @@ class ShortlistOptions(OptionGroup):
     the ``top_k`` are kept (None: none, the scores alone rank)."""
     fit_weight: float = Field(default=20.0, ge=0)
     """Score lost per metre of a candidate's outline fit (the view's mean distance to it)."""
-    share_candidates: int | None = Field(default=30, ge=1)
-    """The best after that fit that gain by the share of the view lying on their outlines, read
-    between cells and at half-cell offsets (None: none)."""
-    share_distance: float = Field(default=0.03, gt=0)
-    """How near an outline (metres, read between its 5 cm cells) a view point lies on it."""
-    share_weight: float = Field(default=2.0, ge=0)
-    """Score gained per unit of that share (1: every point of the view lies on the outline)."""
 
 
 class MatchOptions(OptionGroup):

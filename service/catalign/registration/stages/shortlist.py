@@ -13,8 +13,7 @@ nearest neighbours of each heading's descriptor and the entries it does not hold
 In a category of at least ``fit_from`` models, the best ``fit_candidates`` by those scores are
 then re-ranked by how well the view lies on each
 one's outline (:mod:`catalign.library.outline`), at the heading it scored best at: the descriptor
-finds the few hundred models a view may show, the fit picks the few worth registering. The best
-``share_candidates`` of those gain by the share of the view lying on their outlines, read finer.
+finds the few hundred models a view may show, the fit picks the few worth registering.
 """
 
 from __future__ import annotations
@@ -25,25 +24,20 @@ import numpy as np
 
 from catalign.features.retrieval import RetrievalHead
 from catalign.library.loaded import Library
-from catalign.library.outline import OUTLINE_TRUNCATION, fit_outlines, lying_shares
+from catalign.library.outline import OUTLINE_TRUNCATION, fit_distances
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
 
 
 @dataclass(frozen=True)
 class OutlineRanking:
-    """How the shortlist re-ranks by outlines (``engine.shortlist``'s ``fit_*`` and ``share_*``):
-    from ``fit_from`` searched entries, the best ``fit_candidates`` by descriptor lose
-    ``fit_weight`` per metre of their outline fit, and the best ``share_candidates`` of those
-    gain ``share_weight`` times the share of the view within ``share_distance`` of their
-    outlines. None: that step is skipped."""
+    """How the shortlist re-ranks by outlines (``engine.shortlist``'s ``fit_*``): from
+    ``fit_from`` searched entries (None: never), the best ``fit_candidates`` by descriptor
+    (None: none) lose ``fit_weight`` per metre of their outline fit."""
 
     fit_from: int | None = None
     fit_candidates: int | None = None
     fit_weight: float = 0.0
-    share_candidates: int | None = None
-    share_distance: float = 0.0
-    share_weight: float = 0.0
 
 
 def shortlist(
@@ -116,26 +110,13 @@ def _fitted(
     """``candidates``' scores again: the best ``ranking.fit_candidates`` (by their best
     heading's score in ``per_view``) lose ``fit_weight`` per metre of their outline fit at that
     heading, the others as much as the worst fit (the truncation), so that none of them passes
-    a fitted one; then the best ``share_candidates`` of all gain ``share_weight`` times the
-    share of the view lying on their outlines."""
+    a fitted one."""
     scores = per_view.max(axis=0)
     kept = np.lexsort((candidates, -scores))[: ranking.fit_candidates]
     headings = per_view[:, kept].argmax(axis=0)
     fits = np.full(len(candidates), OUTLINE_TRUNCATION)
-    shifts = np.zeros((len(candidates), 3), dtype=int)
     for heading in np.unique(headings):
         at = kept[headings == heading]
-        fit = fit_outlines(library.outlines(candidates[at]), views[heading].canonical_keypoints)
-        fits[at], shifts[at] = fit
-    scores = scores - ranking.fit_weight * fits
-    if ranking.share_candidates is None:
-        return scores
-    best = np.lexsort((candidates, -scores))[: min(ranking.share_candidates, len(kept))]
-    headings = per_view[:, best].argmax(axis=0)
-    shares = np.zeros(len(candidates))
-    for heading in np.unique(headings):
-        at = best[headings == heading]
         outlines = library.outlines(candidates[at])
-        points = views[heading].canonical_keypoints
-        shares[at] = lying_shares(outlines, points, shifts[at], ranking.share_distance)
-    return scores + ranking.share_weight * shares
+        fits[at] = fit_distances(outlines, views[heading].canonical_keypoints)
+    return scores - ranking.fit_weight * fits
