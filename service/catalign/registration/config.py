@@ -116,13 +116,11 @@ class SweepOptions(OptionGroup):
     """How far either side of each described heading the sweep's yaws reach (degrees; None:
     the whole turn)."""
     step: int = Field(default=2, ge=1)
-    """Step of the sweep's shifts, in cells of the library's distance grids (half a voxel
-    each)."""
+    """Step of the sweep's shifts, in cells of the distance grids (half a voxel each)."""
     probes: int = Field(default=64, ge=3)
     """Query key points the sweep reads, of the probes verification uses."""
     shifts: int = Field(default=512, ge=1)
-    """Most shifts the sweep tries at one yaw (the step grows for a view small in its model's
-    box)."""
+    """Most shifts the sweep tries at one yaw (the step grows for a view small in its box)."""
     poses: int = Field(default=2, ge=1)
     """Distinct poses of each swept model that go on to verification."""
     refine: int = Field(default=2, ge=0)
@@ -196,12 +194,9 @@ class DecisionOptions(OptionGroup):
     ``exact_fitness`` or below, every exact fit is sure. 0.95 gained 2 *same* views within 10
     degrees with ``up`` and without (of 108, seeds 0 and 1), lost none (seed 3 too)."""
     fit_margin: float | None = Field(default=0.02, ge=0, le=1)
-    """Among the answers that fit surely (else exactly), only those whose fitness is within
-    this of the closest fit's compete on score (None: all of them): the observed instance's
-    own model fits its view more closely than a near twin that also fits surely. 0.02 gained a
-    *same* view in 7 cells of the 8 reports of ``docs/evaluation.md`` and lost a *cross* one
-    in 1; among 10^4 chairs (``bench/retrieval.py``) it gained 2 and 1 top-1 views of 54 on
-    two seeds of three and lost none, and tables among 70 gained 1 or 2 on each."""
+    """Among answers that fit surely (else exactly), only those within this of the closest fit
+    compete on score (None: all): a near twin fits surely too, the own model more closely
+    (``docs/evaluation.md``, the closest of the sure fits)."""
     heading_fallback: float = Field(default=0.7, ge=0, le=1)
     """With ``heading_mass`` (or ``up_mass``): the confidence below which an answer found at
     the confident headings (or ups) alone sends the query to a search at every proposed
