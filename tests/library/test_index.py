@@ -331,7 +331,10 @@ def test_a_model_larger_than_a_chair_keeps_a_chairs_sample_density(files, extrac
     assert len(chair.points) == SURFACE_POINTS
     cloud = files.points("scan.npy", files.random_cloud(5, count=12_000, scale=1.5))
     assert len(describe_file(SourceFile("scan", cloud), extractor).points) == 12_000
-    huge = describe_file(SourceFile("hall", files.box("hall.ply", (9.0, 3.0, 9.0))), extractor)
+    # a room-sized box would need more than the most points an entry keeps
+    room = (3.0, 1.5, 3.0)
+    assert SURFACE_POINTS * (np.linalg.norm(room) / DENSITY_DIAGONAL) ** 2 > MAX_SURFACE_POINTS
+    huge = describe_file(SourceFile("room", files.box("room.ply", room)), extractor)
     assert len(huge.points) == MAX_SURFACE_POINTS
 
 
