@@ -19,15 +19,14 @@ the nearest symmetric pose, and 5 cm), and the median and 95th-percentile second
 Prints a markdown table and writes it to ``bench/results/retrieval.md``.
 
     .venv/bin/python bench/retrieval.py [--distractors 0 1000 10000] [--pooled 0 1000]
-        [--copies 100000] [--without fit] [--engine NAME=VALUE...] [--views 2]
+        [--copies 100000] [--unfitted] [--engine NAME=VALUE...] [--views 2]
         [--seed 0] [--model-dir DIR]
         [--cache /tmp/catalign-retrieval] [--out bench/results/retrieval.md]
 
 ``--pooled`` also runs the baseline, the same weights shortlisting by pooled features, at
-those distractor counts; ``--without fit`` the shortlist by descriptors alone, without the
+those distractor counts; ``--unfitted`` the shortlist by descriptors alone, without the
 re-ranking by outlines (``engine.shortlist.fit_candidates`` None), on every library.
-``--engine`` sets engine
-options for every run, as ``catalign evaluate --engine`` does.
+``--engine`` sets engine options for every run, as ``catalign evaluate --engine`` does.
 """
 
 from __future__ import annotations
@@ -228,12 +227,6 @@ def measure(
     return rows
 
 
-# --without's baselines: their label and the shortlist options that switch the step off
-BASELINES = {
-    "fit": ("no outline fit", {"fit_candidates": None}),
-}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--distractors", type=int, nargs="+", default=[0, 1000, 10000])
@@ -247,11 +240,7 @@ def main() -> None:
         "--copies", type=int, default=None, help="also grow each library to this many entries"
     )
     parser.add_argument(
-        "--without",
-        nargs="+",
-        choices=sorted(BASELINES),
-        default=[],
-        help="also shortlist without the outline fit",
+        "--unfitted", action="store_true", help="also shortlist without the outline fit"
     )
     parser.add_argument(
         "--engine", nargs="+", default=[], metavar="NAME=VALUE", help="engine options"
@@ -284,11 +273,11 @@ def main() -> None:
             rows += measure(
                 label, folder, described_by, cases, frames, symmetries, args.seed, config
             )
-            for step in args.without if kind == "retrieval encoders" else ():
-                name, shortlist = BASELINES[step]
+            if args.unfitted and kind == "retrieval encoders":
+                unfitted = config.replaced(shortlist={"fit_candidates": None})
                 rows += measure(
-                    f"{label}, {name}", folder, described_by, cases, frames,
-                    symmetries, args.seed, config.replaced(shortlist=shortlist),
+                    f"{label}, no outline fit", folder, described_by, cases, frames,
+                    symmetries, args.seed, unfitted,
                 )  # fmt: skip
     lines = [
         "# Retrieval at scale",

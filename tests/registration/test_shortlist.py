@@ -7,7 +7,7 @@ import pytest
 
 from catalign.geometry.levelling import leveller
 from catalign.registration.stages.describe import QueryView
-from catalign.registration.stages.shortlist import OutlineRanking, shortlist
+from catalign.registration.stages.shortlist import shortlist
 
 
 def _box(size: tuple[float, float, float], seed: int, count: int = 400) -> np.ndarray:
@@ -73,13 +73,10 @@ def test_the_model_a_view_lies_on_passes_one_its_descriptor_prefers(
     )
     view = QueryView(view_points, features)  # the features the other model holds
     assert shortlist(library, [view], None, None) == ["other", "own"]
-
-    def ranked(k: int | None, **ranking) -> list[str]:
-        return shortlist(library, [view], k, None, ranking=OutlineRanking(**ranking))
-
     fit = {"fit_from": 2, "fit_weight": 20.0}
-    assert ranked(1, fit_candidates=2, **fit) == ["own"]
+    assert shortlist(library, [view], 1, None, fit_candidates=2, **fit) == ["own"]
     # only the best by descriptor are fitted: one candidate fitted keeps the order
-    assert ranked(None, fit_candidates=1, **fit) == ["other", "own"]
+    assert shortlist(library, [view], None, None, fit_candidates=1, **fit) == ["other", "own"]
     # and only in a library of at least ``fit_from`` models
-    assert ranked(1, fit_from=3, fit_candidates=2, fit_weight=20.0) == ["other"]
+    unfitted = {"fit_from": 3, "fit_candidates": 2, "fit_weight": 20.0}
+    assert shortlist(library, [view], 1, None, **unfitted) == ["other"]

@@ -23,7 +23,6 @@ from catalign.registration.stages.hypothesise import Hypothesiser
 from catalign.registration.stages.match import Matcher
 from catalign.registration.stages.refine import Refiner
 from catalign.registration.stages.searcher import Searcher
-from catalign.registration.stages.shortlist import OutlineRanking
 from catalign.registration.stages.sweep import Sweeper
 from catalign.registration.stages.verify import Verifier
 
@@ -68,11 +67,9 @@ def assemble(
         retrieval=extractor.retrieval,
         index_from=config.shortlist.index_from,
         index_candidates=config.shortlist.index_candidates,
-        ranking=OutlineRanking(
-            fit_from=config.shortlist.fit_from,
-            fit_candidates=config.shortlist.fit_candidates,
-            fit_weight=config.shortlist.fit_weight,
-        ),
+        fit_from=config.shortlist.fit_from,
+        fit_candidates=config.shortlist.fit_candidates,
+        fit_weight=config.shortlist.fit_weight,
     )
     fitter = CategoryFitter(library, refiner, extent_points=config.verify.coverage_points)
     finisher = Finisher(

@@ -21,7 +21,7 @@ from catalign.registration.stages.hypothesise import Hypothesis, Hypothesiser
 from catalign.registration.stages.match import Matcher
 from catalign.registration.stages.request import Request
 from catalign.registration.stages.search import Search
-from catalign.registration.stages.shortlist import OutlineRanking, shortlist
+from catalign.registration.stages.shortlist import shortlist
 from catalign.registration.stages.sweep import Sweeper
 from catalign.registration.stages.verify import Scored, Verifier
 
@@ -32,7 +32,7 @@ class Searcher:
     options the engine's configuration names: ``heading_models`` (the best shortlisted models
     the headings are chosen on), ``up_belief_power``, ``heading_belief_power``,
     ``index_from`` and ``index_candidates`` (when the shortlist reads the library's index),
-    ``ranking`` (its re-ranking by outlines); and
+    ``fit_from``, ``fit_candidates`` and ``fit_weight`` (its re-ranking by outlines); and
     the extractor's ``retrieval`` encoders that describe the query for the shortlist (None:
     its pooled features)."""
 
@@ -46,7 +46,9 @@ class Searcher:
     heading_belief_power: float
     index_from: int | None
     index_candidates: int
-    ranking: OutlineRanking | None = None
+    fit_from: int | None = None
+    fit_candidates: int | None = None
+    fit_weight: float = 0.0
     retrieval: RetrievalHead | None = None
 
     def search(self, search: Search, request: Request) -> tuple[Search, list[Scored]]:
@@ -64,7 +66,9 @@ class Searcher:
                 request.category,
                 self.index_from,
                 self.index_candidates,
-                self.ranking,
+                self.fit_from,
+                self.fit_candidates,
+                self.fit_weight,
             )
 
         # Match: keep the headings the leading candidates agree with, match every candidate

@@ -18,8 +18,6 @@ finds the few hundred models a view may show, the fit picks the few worth regist
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from catalign.features.retrieval import RetrievalHead
@@ -27,17 +25,6 @@ from catalign.library.loaded import Library
 from catalign.library.outline import OUTLINE_TRUNCATION, fit_distances
 from catalign.library.retrieval import global_descriptor, retrieval_scores
 from catalign.registration.stages.describe import QueryView
-
-
-@dataclass(frozen=True)
-class OutlineRanking:
-    """How the shortlist re-ranks by outlines (``engine.shortlist``'s ``fit_*``): from
-    ``fit_from`` searched entries (None: never), the best ``fit_candidates`` by descriptor
-    (None: none) lose ``fit_weight`` per metre of their outline fit."""
-
-    fit_from: int | None = None
-    fit_candidates: int | None = None
-    fit_weight: float = 0.0
 
 
 def shortlist(
@@ -50,7 +37,9 @@ def shortlist(
     category: str | None = None,
     index_from: int | None = None,
     index_candidates: int | None = None,
-    ranking: OutlineRanking | None = None,
+    fit_from: int | None = None,
+    fit_candidates: int | None = None,
+    fit_weight: float = 0.0,
 ) -> list[str]:
     """The ids of the ``k`` (None: all) library models most like the query, best first (ties
     in library order), among ``rows`` (a mask over the library's ids: a category's; None:
@@ -60,7 +49,9 @@ def shortlist(
     ``category`` the one ``rows`` are of (None: every model). When at least ``index_from``
     models are searched and the library has an index, only the index's ``index_candidates``
     nearest entries to each heading's descriptor and the unindexed ones are scored (either
-    None: every model is). ``ranking`` re-ranks by outlines (None: it does not)."""
+    None: every model is). When at least ``fit_from`` models are searched, the best
+    ``fit_candidates`` then lose ``fit_weight`` per metre of their outline fit (either None:
+    no fit)."""
     keypoints = views[0].keypoints
     size = np.ptp(keypoints, axis=0)
     height = None if turn is None else float(np.ptp(keypoints @ turn[1]))
@@ -88,10 +79,10 @@ def shortlist(
         scored = None if rows is None else candidates  # only the category's rows are scored
     per_view = retrieval_scores(library, descriptors, size, height, weight, scored)
     scores = per_view.max(axis=0)
-    if ranking is not None and len(candidates) > 0:
-        fitting = ranking.fit_from is not None and ranking.fit_candidates is not None
-        if fitting and searched >= ranking.fit_from:
-            scores = _fitted(library, views, candidates, per_view, ranking)
+    fitting = fit_from is not None and fit_candidates is not None and searched >= fit_from
+    if fitting and len(candidates) > 0:
+        fitted = _fitted(library, views, candidates, per_view, fit_candidates, fit_weight)
+        candidates, scores = fitted
     count = len(candidates) if k is None else min(k, len(candidates))
     if 0 < count < len(candidates):  # only the best ``count`` (and any tied with the last)
         kth = -np.partition(-scores, count - 1)[count - 1]
@@ -105,18 +96,18 @@ def _fitted(
     views: list[QueryView],
     candidates: np.ndarray,
     per_view: np.ndarray,
-    ranking: OutlineRanking,
-) -> np.ndarray:
-    """``candidates``' scores again: the best ``ranking.fit_candidates`` (by their best
-    heading's score in ``per_view``) lose ``fit_weight`` per metre of their outline fit at that
-    heading, the others as much as the worst fit (the truncation), so that none of them passes
-    a fitted one."""
+    count: int,
+    weight: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``candidates`` scored again: the best ``count`` (by their best heading's score in
+    ``per_view``) lose ``weight`` per metre of their outline fit at that heading, the others
+    as much as the worst fit (the truncation), so that none of them passes a fitted one."""
     scores = per_view.max(axis=0)
-    kept = np.lexsort((candidates, -scores))[: ranking.fit_candidates]
+    kept = np.lexsort((candidates, -scores))[:count]
     headings = per_view[:, kept].argmax(axis=0)
     fits = np.full(len(candidates), OUTLINE_TRUNCATION)
     for heading in np.unique(headings):
         at = kept[headings == heading]
         outlines = library.outlines(candidates[at])
         fits[at] = fit_distances(outlines, views[heading].canonical_keypoints)
-    return scores - ranking.fit_weight * fits
+    return candidates, scores - weight * fits
